@@ -32,9 +32,9 @@ def random_episode(path, seed: int = 0, frames: int = 12, obs_every: int = 5, ca
                     q = rng.normal(size=4)
                     cams[name] = CameraFrame(
                         rgb=rng.integers(0, 256, (8, 10, 3), dtype=np.uint8),
-                        depth=rng.uniform(0, 2, (8, 10)).astype(np.float32),
+                        depth=rng.uniform(0, 0.4, (8, 10)).astype(np.float32),
                         intrinsic=np.array([[50.0, 0, 5], [0, 50.0, 4], [0, 0, 1]]),
-                        cam2world=np.concatenate([rng.normal(size=3), q / np.linalg.norm(q)]),
+                        cam2world=np.concatenate([rng.uniform(-0.1, 0.1, size=3), q / np.linalg.norm(q)]),
                     )
                 w.write_observation(t, cams, cloud)
                 truth["clouds"][t] = cloud

@@ -9,6 +9,7 @@ from mcap.writer import Writer
 from conftest import assert_one_line_error
 from episode_factory import random_episode
 from rvt2cli.data import EpisodeMeta, EpisodeWriter, read_episode, write_keyframes
+from rvt2cli.data.fusion import fuse
 from rvt2cli.data.writer import McapChannels
 from rvt2cli.errors import UserError
 
@@ -28,10 +29,13 @@ def test_round_trip_is_bit_exact(tmp_path):
     assert ep.robot.actions[-1] is None and len(ep.robot.actions[0]) == 8
     assert ep.instruction["text"] == "insert the peg into the box"
     for t in ep.obs_frames:
-        cloud = ep.cloud(t)
-        assert cloud.xyz.dtype == np.float32 and cloud.rgb.dtype == np.uint8
-        assert np.array_equal(cloud.xyz, truth["clouds"][t].xyz)
-        assert np.array_equal(cloud.rgb, truth["clouds"][t].rgb)
+        stored = ep.stored_cloud(t)
+        assert stored.xyz.dtype == np.float32 and stored.rgb.dtype == np.uint8
+        assert np.array_equal(stored.xyz, truth["clouds"][t].xyz)
+        assert np.array_equal(stored.rgb, truth["clouds"][t].rgb)
+        fused = fuse(truth["cams"][t], truth["meta"].scene_bounds)
+        assert len(fused) > 0
+        assert np.array_equal(ep.cloud(t).xyz, fused.xyz) and np.array_equal(ep.cloud(t).rgb, fused.rgb)
         for name, cam in ep.cameras(t).items():
             want = truth["cams"][t][name]
             assert np.array_equal(cam.rgb, want.rgb)

@@ -13,7 +13,9 @@ from rvt2cli.errors import UserError
 
 # In the order of the data flow; `rvt2 --help` lists them in this order.
 COMMAND_MODULES = [
+    "rvt2cli.cli.record",
     "rvt2cli.cli.info",
+    "rvt2cli.cli.keyframes",
 ]
 
 

@@ -24,6 +24,7 @@ from mcap.records import Message
 
 from rvt2cli.data import messages, schemas, topics
 from rvt2cli.data.episode import CameraFrame, Cloud, EpisodeMeta, RobotTrajectory
+from rvt2cli.data.fusion import fuse
 from rvt2cli.errors import UserError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -78,6 +79,11 @@ class Episode:
             ) from None
 
     def cloud(self, frame: int) -> Cloud:
+        """The fused world-frame cloud the policy sees at `frame` (from the stored RGB-D images)."""
+        return fuse(self.cameras(frame), self.meta.scene_bounds, self.meta.voxel_size)
+
+    def stored_cloud(self, frame: int) -> Cloud:
+        """The optional `/points/world` cloud written for viewing (`rvt2 record --store-clouds`)."""
         msg = PointCloud.FromString(self._obs_bytes(topics.CLOUD, frame))
         try:
             xyz, rgb = messages.cloud_from(msg)

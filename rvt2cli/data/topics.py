@@ -5,7 +5,7 @@ TCP_POSE = "/robot/tcp_pose"          # foxglove.PoseInFrame, every frame
 TF = "/tf"                            # foxglove.FrameTransform: world->tcp every frame, world->camera at obs frames
 SIM_STATE = "/sim/state"              # rvt2.SimState, every frame
 INSTRUCTION = "/language/instruction"  # rvt2.Instruction, once
-CLOUD = "/points/world"               # foxglove.PointCloud, fused + cropped, at obs frames
+CLOUD = "/points/world"               # foxglove.PointCloud, fused + cropped, at obs frames (optional, for viewing)
 KEYFRAMES = "/annotations/keyframes"  # rvt2.Keyframes, once, written by extract-keyframes
 
 METADATA_NAME = "rvt2.episode"        # MCAP metadata record: format_version + episode (JSON)

@@ -130,7 +130,8 @@ class EpisodeWriter:
             self._mcap.write_json(topics.SIM_STATE, schemas.SIM_STATE, {"frame": frame, **sim_state}, t)
         self._num_frames = max(self._num_frames, frame + 1)
 
-    def write_observation(self, frame: int, cameras: dict[str, CameraFrame], cloud: Cloud) -> None:
+    def write_observation(self, frame: int, cameras: dict[str, CameraFrame], cloud: Cloud | None = None) -> None:
+        """The cameras' RGB-D images at `frame`; `cloud`, if given, is stored on /points/world for viewing."""
         t = self._t(frame)
         for name, cam in cameras.items():
             frame_id = topics.camera_frame_id(name)
@@ -139,7 +140,8 @@ class EpisodeWriter:
             self._mcap.write_protobuf(topics.camera_calibration(name), messages.camera_calibration(cam.intrinsic, w, h, t, frame_id), t)
             self._mcap.write_protobuf(topics.camera_image(name), messages.rgb_image(cam.rgb, t, frame_id), t)
             self._mcap.write_protobuf(topics.camera_depth(name), messages.depth_image(cam.depth, t, frame_id), t)
-        self._mcap.write_protobuf(topics.CLOUD, messages.point_cloud(cloud.xyz, cloud.rgb, t), t)
+        if cloud is not None:
+            self._mcap.write_protobuf(topics.CLOUD, messages.point_cloud(cloud.xyz, cloud.rgb, t), t)
         self._obs_frames.append(frame)
 
     @property

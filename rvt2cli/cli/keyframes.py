@@ -1,0 +1,48 @@
+"""`rvt2 extract-keyframes FILE...`: annotate episodes with keyframes and training samples."""
+
+import sys
+
+from rvt2cli.errors import UserError
+
+
+def register(subparsers) -> None:
+    from rvt2cli.keyframes.rule import KeyframeParams
+
+    d = KeyframeParams()
+    p = subparsers.add_parser(
+        "extract-keyframes", help="find keyframes (gripper change / arm at rest / last frame) and training samples",
+        description="Find each episode's keyframes with the PerAct/RVT rule and write them, with the training samples "
+                    "(observation frame -> next keyframe), into the episode file (atomically; re-running replaces them).",
+    )
+    p.add_argument("files", nargs="+", metavar="FILE", help="episode .mcap files or folders of them")
+    p.add_argument("--dry-run", action="store_true", help="only report; write nothing")
+    p.add_argument("--stop-velocity", type=float, default=d.stop_velocity,
+                   help=f"rad/s: the arm is at rest when every arm joint is slower (default {d.stop_velocity}; "
+                        "PerAct/RVT use 0.1 on RLBench, which fires one 20 Hz step early in ManiSkill)")
+    p.add_argument("--stop-buffer", type=int, default=d.stop_buffer,
+                   help=f"frames a rest keyframe blocks the next one (default {d.stop_buffer}, as the reference)")
+    p.add_argument("--obs-every", type=int, default=d.obs_every,
+                   help=f"an observation start every N frames besides the keyframes (default {d.obs_every}, as the reference)")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.keyframes.extract import describe, extract_file
+    from rvt2cli.keyframes.rule import KeyframeParams
+
+    params = KeyframeParams(stop_velocity=args.stop_velocity, stop_buffer=args.stop_buffer, obs_every=args.obs_every)
+    failed = []
+    paths = episode_paths(args.files)
+    for path in paths:
+        try:
+            annotation = extract_file(path, params, dry_run=args.dry_run)
+        except UserError as e:
+            print(f"rvt2: error: {e}", file=sys.stderr)
+            failed.append(path.name)
+            continue
+        print(f"{path}: {describe(annotation)}")
+    done = len(paths) - len(failed)
+    verb = "checked" if args.dry_run else "annotated"
+    print(f"{done} of {len(paths)} files {verb}" + (f"; failed: {', '.join(failed)}" if failed else ""))
+    return 2 if failed else 0

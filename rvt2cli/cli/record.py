@@ -1,0 +1,78 @@
+"""`rvt2 record`: scripted-expert demonstrations in ManiSkill/SAPIEN -> MCAP episodes."""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "record", help="record expert demonstrations of a task into MCAP episode files",
+        description="Run a task's scripted expert in the simulator (CPU) and write one MCAP file per successful "
+                    "episode: dense robot and simulator state every control step, RGB-D images of the camera rig at "
+                    "the frames training uses. Seeds run upwards from --seed; the same command writes the same files.",
+    )
+    p.add_argument("--task", help="task name (see --list-tasks)")
+    p.add_argument("--list-tasks", action="store_true", help="print the known tasks and exit")
+    p.add_argument("--episodes", type=int, default=25, help="successful episodes to record (default 25)")
+    p.add_argument("--out", default="demos", help="output folder (default demos/)")
+    p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--workers", type=int, default=1, help="parallel simulator processes (default 1)")
+    p.add_argument("--cameras", help="comma-separated camera names (default: the task's rig; "
+                                     "'front' alone is the paper's single-camera setting)")
+    p.add_argument("--image-size", type=int, help="camera resolution (default: the task's, 128)")
+    p.add_argument("--obs-every", type=int, default=10, help="render the cameras every N frames besides keyframes (default 10)")
+    p.add_argument("--voxel-size", type=float, help="downsample fused clouds to this voxel size in metres (default: no)")
+    p.add_argument("--store-clouds", action="store_true", help="also store the fused cloud (/points/world) for viewing in Foxglove")
+    p.add_argument("--keep-failures", action="store_true", help="also keep episodes in which the expert failed")
+    p.add_argument("--max-attempts", type=int, help="give up after this many episodes (default 10 x --episodes + 10)")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from rvt2cli.errors import UserError
+    from rvt2cli.record.cameras import CAMERAS
+    from rvt2cli.tasks import all_tasks, get_task
+
+    if args.list_tasks:
+        for task in all_tasks().values():
+            print(f"{task.name:<18} {task.env_id:<22} {task.all_instructions()[0]!r}")
+        return 0
+    if not args.task:
+        raise UserError("record needs --task NAME (see `rvt2 record --list-tasks`)")
+    task = get_task(args.task)
+    cameras = None
+    if args.cameras:
+        cameras = tuple(c.strip() for c in args.cameras.split(",") if c.strip())
+        unknown = [c for c in cameras if c not in CAMERAS]
+        if unknown:
+            raise UserError(f"unknown camera(s) {', '.join(unknown)}; known cameras: {', '.join(CAMERAS)}")
+    if args.episodes < 1 or args.workers < 1 or args.obs_every < 1:
+        raise UserError("--episodes, --workers and --obs-every must be at least 1")
+
+    from tqdm import tqdm
+
+    from rvt2cli.record.recorder import RecordOptions, record
+
+    options = RecordOptions(cameras=cameras, image_size=args.image_size, obs_every=args.obs_every,
+                            voxel_size=args.voxel_size, store_clouds=args.store_clouds, keep_failures=args.keep_failures)
+    bar = tqdm(total=args.episodes, unit="ep", desc=f"record {task.name}", dynamic_ncols=True)
+
+    def on_result(result, summary):
+        if result.success:
+            bar.update(1)
+        if result.status == "error":
+            tqdm.write(f"seed {result.seed}: simulator error, episode skipped: {result.error}")
+        bar.set_postfix(attempts=len(summary.results), expert_success=f"{summary.expert_success_rate:.0%}")
+
+    try:
+        summary = record(task.name, args.episodes, args.out, seed=args.seed, workers=args.workers, options=options,
+                         max_attempts=args.max_attempts, on_result=on_result)
+    finally:
+        bar.close()
+    kept = [r for r in summary.results if r.path]
+    mb = sum(r.size_bytes for r in kept) / max(1, len(kept)) / 1e6
+    counts = ", ".join(f"{n} {status}" for status, n in sorted(summary.counts().items()))
+    print(f"recorded {len(summary.successes)} successful {task.name} episodes into {args.out}/ in {summary.seconds:.0f} s "
+          f"({mb:.1f} MB each); expert success {summary.expert_success_rate:.0%} over {len(summary.results)} attempts ({counts})")
+    if len(summary.successes) < args.episodes:
+        print(f"rvt2: warning: only {len(summary.successes)} of {args.episodes} episodes succeeded within "
+              f"{len(summary.results)} attempts; raise --max-attempts to try more seeds")
+        return 1
+    return 0

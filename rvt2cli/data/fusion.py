@@ -1,0 +1,54 @@
+"""RGB-D images -> one world-frame point cloud, cropped to the task's scene bounds.
+
+Episodes store the cameras' RGB-D images; the cloud a policy sees is computed from them by `fuse`,
+deterministically, in recording, training and evaluation alike.
+"""
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rvt2cli.data.episode import CameraFrame, Cloud
+
+
+def camera_points(cam: CameraFrame) -> Cloud:
+    """Back-project every pixel with a depth return into the world frame.
+
+    Pixel (row, col) is sampled at its centre (col + 0.5, row + 0.5): SAPIEN's intrinsics put the
+    principal point at W/2, i.e. pixel edges sit on integer coordinates.
+    """
+    rows, cols = np.nonzero(cam.depth > 0)
+    z = cam.depth[rows, cols].astype(np.float64)
+    K = cam.intrinsic
+    x = (cols + 0.5 - K[0, 2]) / K[0, 0] * z
+    y = (rows + 0.5 - K[1, 2]) / K[1, 1] * z
+    rotation = Rotation.from_quat(cam.cam2world[3:]).as_matrix()
+    world = np.stack([x, y, z], axis=1) @ rotation.T + cam.cam2world[:3]
+    return Cloud(xyz=world.astype(np.float32), rgb=cam.rgb[rows, cols])
+
+
+def crop(cloud: Cloud, bounds) -> Cloud:
+    lo, hi = np.asarray(bounds[:3], np.float32), np.asarray(bounds[3:], np.float32)
+    keep = np.all((cloud.xyz >= lo) & (cloud.xyz <= hi), axis=1)
+    return Cloud(xyz=cloud.xyz[keep], rgb=cloud.rgb[keep])
+
+
+def voxel_downsample(cloud: Cloud, voxel_size: float) -> Cloud:
+    """One point per occupied voxel (mean position and colour), with open3d."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(cloud.xyz.astype(np.float64))
+    pcd.colors = o3d.utility.Vector3dVector(cloud.rgb.astype(np.float64) / 255.0)
+    down = pcd.voxel_down_sample(voxel_size)
+    xyz = np.asarray(down.points, dtype=np.float32)
+    rgb = np.clip(np.rint(np.asarray(down.colors) * 255.0), 0, 255).astype(np.uint8)
+    return Cloud(xyz=xyz, rgb=rgb)
+
+
+def fuse(cameras: dict[str, CameraFrame], bounds, voxel_size: float | None = None) -> Cloud:
+    """All cameras' points in the world frame, cropped to `bounds`, optionally voxel-downsampled."""
+    parts = [crop(camera_points(cam), bounds) for cam in cameras.values()]
+    cloud = Cloud(xyz=np.concatenate([p.xyz for p in parts]), rgb=np.concatenate([p.rgb for p in parts]))
+    if voxel_size:
+        cloud = voxel_downsample(cloud, voxel_size)
+    return cloud

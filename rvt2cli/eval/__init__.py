@@ -1,0 +1,1 @@
+"""rvt2cli.eval"""

@@ -1,0 +1,137 @@
+"""A task's ManiSkill scene with rvt2's camera rig, and what we read out of it each frame.
+
+The environment steps with `obs_mode="none"` (no rendering while the expert runs); cameras are
+rendered only on request with `capture_cameras`, typically after `env.set_state_dict(...)`.
+"""
+
+import re
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rvt2cli.data import CameraFrame
+from rvt2cli.record.cameras import camera_configs
+from rvt2cli.runtime import use_software_vulkan_if_unset
+from rvt2cli.tasks import Task
+
+FINGER_LINKS = ("panda_leftfinger", "panda_rightfinger")
+CONTACT_IMPULSE = 1e-6  # N*s: contacts below this carry no force
+MIN_HELD_WIDTH = 0.005  # m: fingers closer than this hold nothing (a closed gripper pushing with both tips)
+
+
+def make_env(task: Task, cameras=None, image_size: int | None = None):
+    """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras."""
+    use_software_vulkan_if_unset()
+    import mani_skill.envs  # noqa: F401 - registers the environments
+    from mani_skill.utils.registration import REGISTERED_ENVS
+
+    base = REGISTERED_ENVS[task.env_id].cls
+    camera_names = tuple(task.cameras if cameras is None else cameras)
+    size = image_size or task.image_size
+    show = set(task.show_hidden)
+
+    class RVT2Scene(base):
+        @property
+        def _default_sensor_configs(self):
+            return camera_configs(camera_names, size, self.agent.robot.links_map)
+
+        def _load_scene(self, options):
+            super()._load_scene(options)
+            self._hidden_objects = [o for o in self._hidden_objects if o.name not in show]
+
+    RVT2Scene.__name__ = f"RVT2{base.__name__}"
+    env = RVT2Scene(obs_mode="none", control_mode="pd_joint_pos", reward_mode="none", sim_backend="cpu",
+                    render_mode="rgb_array", **task.env_kwargs)
+    env.rvt2_cameras = camera_names
+    return env
+
+
+def _wxyz_to_xyzw(q) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    return np.array([q[1], q[2], q[3], q[0]])
+
+
+def tcp_pose(env) -> np.ndarray:
+    raw = env.unwrapped.agent.tcp.pose.raw_pose[0].cpu().numpy()
+    return np.concatenate([raw[:3], _wxyz_to_xyzw(raw[3:])]).astype(np.float32)
+
+
+def robot_state(env) -> dict:
+    robot = env.unwrapped.agent.robot
+    qpos = robot.get_qpos()[0].cpu().numpy()
+    qvel = robot.get_qvel()[0].cpu().numpy()
+    return {
+        "joint_names": [j.name for j in robot.get_active_joints()],
+        "joint_positions": qpos,
+        "joint_velocities": qvel,
+        "gripper_width": float(qpos[-2] + qpos[-1]),
+        "tcp_pose": tcp_pose(env),
+    }
+
+
+def _body_name(entity_name: str) -> str:
+    """'scene-0_peg_0' -> 'peg' (ManiSkill prefixes the sub-scene and suffixes the instance)."""
+    return re.sub(r"_\d+$", "", re.sub(r"^scene-\d+_", "", entity_name))
+
+
+def robot_contacts(env) -> list[str]:
+    """Scene bodies touched by the robot or by an object the robot holds (between both fingers)."""
+    u = env.unwrapped
+    qpos = u.agent.robot.get_qpos()[0]
+    gripper_width = float(qpos[-2] + qpos[-1])
+    robot_links = {link.name for link in u.agent.robot.get_links()}
+    pairs = []
+    for contact in u.scene.get_contacts():
+        if sum(float(np.linalg.norm(p.impulse)) for p in contact.points) > CONTACT_IMPULSE:
+            pairs.append((contact.bodies[0].entity.name, contact.bodies[1].entity.name))
+    touching = {}
+    for a, b in pairs:
+        touching.setdefault(a, set()).add(b)
+        touching.setdefault(b, set()).add(a)
+    held = set()
+    if gripper_width > MIN_HELD_WIDTH:
+        held = {body for body, others in touching.items() if all(f in others for f in FINGER_LINKS)}
+    grip = robot_links | held
+    touched = {b for a, b in pairs if a in grip and b not in grip} | {a for a, b in pairs if b in grip and a not in grip}
+    return sorted({_body_name(n) for n in touched})
+
+
+def sim_state(env) -> dict:
+    state = env.unwrapped.get_state_dict()
+    return {group: {name: t[0].cpu().numpy().astype(np.float32).tolist() for name, t in items.items()}
+            for group, items in state.items()}
+
+
+def restore_sim_state(env, state: dict) -> None:
+    import torch
+
+    env.unwrapped.set_state_dict({group: {name: torch.tensor([values], dtype=torch.float32) for name, values in items.items()}
+                                  for group, items in state.items()})
+
+
+def capture_cameras(env) -> dict[str, CameraFrame]:
+    """Render every rvt2 camera at the current simulator state (hidden objects stay hidden)."""
+    u = env.unwrapped
+    for obj in u._hidden_objects:
+        obj.hide_visual()
+    u.scene.update_render(update_sensors=True, update_human_render_cameras=False)
+    frames = {}
+    for name in env.rvt2_cameras:
+        sensor = u.scene.sensors[name]
+        sensor.capture()
+        tex = sensor.get_obs(rgb=True, depth=False, position=True, segmentation=True, apply_texture_transforms=False)
+        color = tex["Color"][0, ..., :3].cpu().numpy()
+        position = tex["Position"][0, ..., :3].cpu().numpy()   # OpenGL camera frame: the camera looks along -z
+        segmentation = tex["Segmentation"][0, ..., 1].cpu().numpy()  # actor-level ids, 0 = nothing hit
+        depth = np.where(segmentation > 0, -position[..., 2], 0.0).astype(np.float32)
+        params = sensor.get_params()
+        world2cam = params["extrinsic_cv"][0].cpu().numpy().astype(np.float64)
+        rot_c2w = world2cam[:, :3].T
+        cam2world = np.concatenate([-rot_c2w @ world2cam[:, 3], Rotation.from_matrix(rot_c2w).as_quat()])
+        frames[name] = CameraFrame(
+            rgb=np.clip(np.rint(color * 255.0), 0, 255).astype(np.uint8),
+            depth=depth,
+            intrinsic=params["intrinsic_cv"][0].cpu().numpy().astype(np.float64),
+            cam2world=cam2world,
+        )
+    return frames

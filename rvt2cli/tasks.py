@@ -1,0 +1,86 @@
+"""Tasks as data: one TOML file per task in the repository's `tasks/` folder.
+
+A task names a ManiSkill environment, its scripted expert, the language instructions, the scene
+bounds the policy sees, and the camera rig. Fields a file leaves out take the defaults below.
+"""
+
+import functools
+import random
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+
+from rvt2cli.errors import UserError
+
+# One workspace cube for every task (like RLBench's fixed bounds): 0.8 m on a side, table top at z = 0,
+# Panda base at x = -0.615 just outside it. Stage-1 pixels are 3.6 mm, stage-2 (4x zoom) 0.9 mm.
+DEFAULT_SCENE_BOUNDS = (-0.4, -0.4, -0.05, 0.4, 0.4, 0.75)
+DEFAULT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
+DEFAULT_IMAGE_SIZE = 128
+
+
+@dataclass(frozen=True)
+class Task:
+    name: str
+    env_id: str
+    expert: str                       # "module:function" taking (env, seed) like ManiSkill's solutions
+    instructions: tuple[str, ...]     # templates; {names} are filled from `variables`
+    max_steps: int
+    scene_bounds: tuple[float, ...] = DEFAULT_SCENE_BOUNDS
+    cameras: tuple[str, ...] = DEFAULT_CAMERAS
+    image_size: int = DEFAULT_IMAGE_SIZE
+    variables: dict = field(default_factory=dict)
+    show_hidden: tuple[str, ...] = ()  # objects ManiSkill hides from cameras that the policy must see
+    env_kwargs: dict = field(default_factory=dict)
+
+    def instruction(self, seed: int) -> tuple[str, int]:
+        """The instruction of the episode with this seed: (text, template index), deterministic."""
+        index = random.Random(seed).randrange(len(self.instructions))
+        return self.instructions[index].format(**self.variables), index
+
+    def all_instructions(self) -> list[str]:
+        return [t.format(**self.variables) for t in self.instructions]
+
+
+_REQUIRED = ("name", "env_id", "expert", "instructions", "max_steps")
+
+
+def _parse(text: str, source: str) -> Task:
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{source}: not valid TOML ({e})") from None
+    missing = [k for k in _REQUIRED if k not in raw]
+    if missing:
+        raise UserError(f"{source}: missing {', '.join(missing)}")
+    unknown = set(raw) - set(Task.__dataclass_fields__)
+    if unknown:
+        raise UserError(f"{source}: unknown field(s) {', '.join(sorted(unknown))}")
+    for key in ("instructions", "scene_bounds", "cameras", "show_hidden"):
+        if key in raw:
+            raw[key] = tuple(raw[key])
+    task = Task(**raw)
+    if len(task.scene_bounds) != 6:
+        raise UserError(f"{source}: scene_bounds needs 6 numbers (xmin ymin zmin xmax ymax zmax)")
+    try:
+        task.all_instructions()
+    except KeyError as e:
+        raise UserError(f"{source}: instruction uses {{{e.args[0]}}} but [variables] does not define it") from None
+    return task
+
+
+@functools.cache
+def all_tasks() -> dict[str, Task]:
+    tasks = {}
+    for entry in sorted(resources.files("rvt2cli._tasks").iterdir(), key=lambda p: p.name):
+        if entry.name.endswith(".toml"):
+            task = _parse(entry.read_text(), f"tasks/{entry.name}")
+            tasks[task.name] = task
+    return tasks
+
+
+def get_task(name: str) -> Task:
+    tasks = all_tasks()
+    if name not in tasks:
+        raise UserError(f"unknown task {name!r}; known tasks: {', '.join(tasks)}")
+    return tasks[name]

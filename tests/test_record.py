@@ -1,0 +1,106 @@
+"""`rvt2 record` and `rvt2 extract-keyframes` in the real simulator, on real MCAP files."""
+
+import numpy as np
+import pytest
+
+from conftest import assert_one_line_error
+from rvt2cli.data import read_episode
+from rvt2cli.keyframes.extract import extract_file
+from rvt2cli.record.recorder import RecordOptions, record
+
+pytestmark = pytest.mark.sim
+SMALL = RecordOptions(cameras=("front", "wrist"), image_size=64)
+
+
+@pytest.fixture(scope="module")
+def push_cube_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("push_cube")
+    summary = record("push_cube", 1, out, seed=0, options=SMALL)
+    assert summary.counts() == {"success": 1}
+    return out
+
+
+def test_recorded_episode_contents(push_cube_dir):
+    ep = read_episode(push_cube_dir / "push_cube_0000.mcap")
+    assert ep.meta.task == "push_cube" and ep.meta.success and ep.meta.seed == 0
+    assert ep.meta.cameras == ["front", "wrist"]
+    assert ep.instruction["text"] in ep.meta.instruction and ep.instruction["task"] == "push_cube"
+    n = ep.num_frames
+    assert 40 < n < 200
+    assert ep.robot.joint_positions.shape == (n, 9) and ep.robot.tcp_pose.shape == (n, 7)
+    assert ep.robot.actions[-1] is None and all(len(a) == 8 for a in ep.robot.actions[:-1])
+    # the expert closes the gripper to push; the command is recorded every frame
+    assert ep.robot.gripper_command[0] == 1.0 and (ep.robot.gripper_command == -1.0).any()
+    # observations: frame 0, every 10th frame, the last frame
+    assert {0, 10, 20, n - 1} <= set(ep.obs_frames)
+    cams = ep.cameras(0)
+    assert cams["front"].rgb.shape == (64, 64, 3) and cams["front"].depth.shape == (64, 64)
+    assert (cams["front"].depth > 0).mean() > 0.9  # the table fills the front view
+    cloud = ep.cloud(0)
+    lo, hi = np.array(ep.meta.scene_bounds[:3]), np.array(ep.meta.scene_bounds[3:])
+    assert len(cloud) > 1000 and np.all(cloud.xyz >= lo) and np.all(cloud.xyz <= hi)
+    # the table top (z = 0) is in the cloud
+    assert np.abs(cloud.xyz[:, 2]).min() < 0.005
+    # TCP starts above the table, and the expert pushes the cube along +x
+    assert ep.robot.tcp_pose[0, 2] > 0.05
+    assert ep.robot.tcp_pose[-1, 0] > ep.robot.tcp_pose[0, 0] + 0.05
+    # the robot touches the cube at some point
+    assert any("cube" in c for c in ep.robot.contacts)
+
+
+def test_same_seed_same_episode_with_any_number_of_workers(push_cube_dir, tmp_path):
+    summary = record("push_cube", 2, tmp_path, seed=0, workers=2, options=SMALL)
+    assert [r.seed for r in summary.successes] == [0, 1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["push_cube_0000.mcap", "push_cube_0001.mcap"]
+    # byte-identical to the single-worker recording of seed 0
+    assert (tmp_path / "push_cube_0000.mcap").read_bytes() == (push_cube_dir / "push_cube_0000.mcap").read_bytes()
+
+
+def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
+    # seed 2 is one the scripted expert solves (it fails about half of all seeds)
+    summary = record("insert_peg", 1, tmp_path, seed=2, options=RecordOptions(cameras=("front",), image_size=32))
+    assert summary.counts() == {"success": 1}
+    path = tmp_path / "insert_peg_0002.mcap"
+    annotation = extract_file(path)
+    kfs = annotation.keyframes["keyframes"]
+    open_flags = [k["gripper_open"] for k in kfs]
+    # reach above the peg (open) -> grasp (closes) -> pre-insert + refinements (closed) -> insert (last)
+    assert open_flags[0] is True and open_flags[1] is False and all(not f for f in open_flags[1:])
+    assert kfs[1]["reasons"] == ["gripper"] and kfs[-1]["reasons"] == ["last"]
+    assert len(kfs) >= 4
+    ep = read_episode(path)
+    peg_height = ep.robot.tcp_pose[kfs[1]["frame"], 2]
+    assert peg_height < 0.05  # grasp is at the peg, on the table
+    # pre-insert: aligned with the hole, the final insert moves the peg along the hole axis
+    pre, last = np.array(kfs[-2]["tcp_pose"][:3]), np.array(kfs[-1]["tcp_pose"][:3])
+    assert 0.02 < np.linalg.norm(last - pre) < 0.15
+    # the final insertion touches the box; nothing before it does
+    assert kfs[-1]["ignore_collisions"] and not any(k["ignore_collisions"] for k in kfs[:2])
+    # samples start at frame 0 and point at the next keyframe
+    samples = annotation.keyframes["samples"]
+    assert samples[0] == {"obs_frame": 0, "keyframe": 0}
+    assert all(kfs[s["keyframe"]]["frame"] > s["obs_frame"] for s in samples)
+    assert read_episode(path).keyframes == annotation.keyframes
+
+
+def test_extract_keyframes_cli_continues_past_bad_files(push_cube_dir, tmp_path, cli):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"not an mcap")
+    good = push_cube_dir / "push_cube_0000.mcap"
+    r = cli("extract-keyframes", "--dry-run", bad, good)
+    assert r.returncode == 2
+    assert_one_line_error(r, "bad.mcap", "not an MCAP file")
+    assert "push_cube_0000.mcap: " in r.stdout and "keyframes [" in r.stdout
+    assert "1 of 2 files checked; failed: bad.mcap" in r.stdout
+    assert read_episode(good).keyframes is None  # dry run wrote nothing
+
+
+def test_record_unknown_task_lists_known_ones(cli):
+    assert_one_line_error(cli("record", "--task", "fold_laundry"), "unknown task 'fold_laundry'", "insert_peg", "stack_cube")
+
+
+def test_list_tasks(cli):
+    r = cli("record", "--list-tasks")
+    names = [line.split()[0] for line in r.stdout.splitlines()]
+    assert {"insert_peg", "plug_charger", "stack_cube", "pick_cube", "push_cube", "pull_cube",
+            "lift_peg_upright", "place_sphere"} <= set(names)
