@@ -34,3 +34,34 @@ def assert_one_line_error(result: CliResult, *fragments: str) -> None:
 @pytest.fixture
 def cli():
     return run_cli
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    """Two real stack_cube demos (three cameras at 64 px), with keyframes: the data of the train,
+    eval and export tests."""
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.keyframes.extract import extract_file
+    from rvt2cli.record.recorder import RecordOptions, record
+
+    out = tmp_path_factory.mktemp("tiny_dataset")
+    summary = record("stack_cube", 2, out, seed=0,
+                     options=RecordOptions(cameras=("front", "left_shoulder", "right_shoulder"), image_size=64))
+    assert len(summary.successes) == 2
+    for path in episode_paths([str(out)]):
+        extract_file(path)
+    return out
+
+
+TINY_TRAIN = dict(config="small", batch_size=8, lr=3e-3, warmup=10, augment=False, val_episodes=0, max_points=20000,
+                  progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tiny_dataset, tmp_path_factory):
+    """The small config trained to overfit the tiny dataset (about a minute on 2 cores)."""
+    from rvt2cli.train.trainer import TrainOptions, train
+
+    out = tmp_path_factory.mktemp("runs") / "tiny"
+    result = train(TrainOptions(data=[str(tiny_dataset)], out=str(out), steps=300, save_every=150, **TINY_TRAIN), say=lambda *_: None)
+    return out, result

@@ -183,6 +183,26 @@ def read_metadata(path: Path, data: bytes) -> tuple[str, dict]:
     return version, meta
 
 
+@dataclass
+class EpisodeOverview:
+    meta: EpisodeMeta
+    topics: set[str]
+
+
+def read_episode_overview(path: str | Path) -> EpisodeOverview:
+    """Metadata and channel names only, from the file's summary (cheap; refuses bad files like
+    read_episode does)."""
+    path = Path(path)
+    data = _check_readable(path)
+    _, meta = read_metadata(path, data)
+    try:
+        summary = make_reader(io.BytesIO(data)).get_summary()
+    except (McapError, ValueError, EOFError) as e:
+        raise UserError(f"{path}: corrupt MCAP file ({type(e).__name__}: {e})") from None
+    topics_ = {c.topic for c in summary.channels.values()} if summary else set()
+    return EpisodeOverview(meta=EpisodeMeta(**meta), topics=topics_)
+
+
 _JSON_TOPICS = {
     topics.ROBOT_STATE: schemas.ROBOT_STATE,
     topics.SIM_STATE: schemas.SIM_STATE,

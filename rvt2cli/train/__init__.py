@@ -1,1 +1,1 @@
-"""rvt2cli.train"""
+"""Training: keyframe samples from episode files -> a trained RVT-2 checkpoint."""

@@ -1,0 +1,73 @@
+"""Recording benchmarks: expert success per task, and insert_peg episodes per minute and MB per episode.
+
+    python -m benchmarks.record_bench [--seeds 20] [--episodes 8] [--workers 2] [--json out.json] [--quick]
+
+Expert success runs each task's expert on seeds 0..N-1 without rendering. Throughput records
+successful insert_peg episodes with the default camera rig, as `rvt2 record` does.
+"""
+
+import argparse
+import json
+import tempfile
+import time
+
+from benchmarks.machine import describe
+from rvt2cli.record.expert import run_expert
+from rvt2cli.record.recorder import RecordOptions, record
+from rvt2cli.record.scene import make_env
+from rvt2cli.tasks import all_tasks
+
+
+def expert_success(task, seeds: int) -> dict:
+    env = make_env(task, cameras=("front",), image_size=32)
+    statuses, frames, start = [], [], time.perf_counter()
+    for seed in range(seeds):
+        run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+        statuses.append(run.status)
+        frames.append(len(run.frames))
+    env.close()
+    return {"task": task.name, "seeds": seeds, "success": statuses.count("success") / seeds,
+            "statuses": {s: statuses.count(s) for s in sorted(set(statuses))},
+            "mean_frames": sum(frames) / seeds, "seconds_per_episode": (time.perf_counter() - start) / seeds}
+
+
+def record_throughput(episodes: int, workers: int) -> dict:
+    with tempfile.TemporaryDirectory() as out:
+        summary = record("insert_peg", episodes, out, seed=0, workers=workers, options=RecordOptions())
+        sizes = [r.size_bytes for r in summary.successes]
+    return {"task": "insert_peg", "episodes": len(summary.successes), "attempts": len(summary.results), "workers": workers,
+            "seconds": summary.seconds, "episodes_per_minute": 60 * len(summary.successes) / summary.seconds,
+            "mb_per_episode": sum(sizes) / len(sizes) / 1e6, "max_mb": max(sizes) / 1e6}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--episodes", type=int, default=8)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--tasks", help="comma-separated (default: all)")
+    parser.add_argument("--json", help="write results here")
+    parser.add_argument("--quick", action="store_true", help="2 seeds of 2 tasks, 1 episode: checks that it runs")
+    args = parser.parse_args()
+    names = args.tasks.split(",") if args.tasks else list(all_tasks())
+    seeds, episodes = args.seeds, args.episodes
+    if args.quick:
+        names, seeds, episodes = ["push_cube", "insert_peg"], 2, 1
+    results = {"machine": describe(), "expert": [], "throughput": None}
+    print("| task | expert success | seeds | mean frames | s/episode (no rendering) |\n|---|---|---|---|---|")
+    for name in names:
+        r = expert_success(all_tasks()[name], seeds)
+        results["expert"].append(r)
+        print(f"| {name} | {r['success']:.2f} | {seeds} | {r['mean_frames']:.0f} | {r['seconds_per_episode']:.2f} |", flush=True)
+    t = record_throughput(episodes, args.workers)
+    results["throughput"] = t
+    print(f"\ninsert_peg with {t['workers']} workers: {t['episodes_per_minute']:.1f} successful episodes/min "
+          f"({t['episodes']} episodes, {t['attempts']} attempts, {t['seconds']:.0f} s), "
+          f"{t['mb_per_episode']:.2f} MB/episode (max {t['max_mb']:.2f})")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()

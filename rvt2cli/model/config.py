@@ -1,0 +1,87 @@
+"""Named model configurations.
+
+`rvt2` is the paper's network; `rvt` is the RVT-1-like baseline of the paper's ablation (five views,
+220 px with 11 px patches, one stage, transposed-convolution heatmaps, global rotation features);
+`small` keeps the rvt2 design at a size that trains on a laptop CPU in minutes (tests, `make demo`).
+"""
+
+from dataclasses import asdict, dataclass, fields, replace
+
+RVT2_VIEWS = ("top", "front", "right")
+RVT1_VIEWS = ("top", "front", "back", "left", "right")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    name: str
+    views: tuple[str, ...] = RVT2_VIEWS
+    image_size: int = 224
+    patch_size: int = 14
+    stages: int = 2                    # 2: coarse views, then views zoomed around the coarse point
+    zoom: float = 4.0                  # stage-2 cameras cover 1/zoom of the scene cube
+    depth: int = 8                     # transformer layers
+    within_view_layers: int = 4        # the first layers attend within each view only
+    width: int = 512
+    heads: int = 8
+    head_dim: int = 64
+    mlp_ratio: int = 4                 # GEGLU hidden width = mlp_ratio * width
+    patch_channels: int = 64           # patchify conv output, before proprio is concatenated
+    proprio_dim: int = 4               # gripper open, two finger joints, time
+    proprio_channels: int = 64
+    lang_dim: int = 384                # all-MiniLM-L6-v2 token embeddings
+    lang_tokens: int = 77
+    convex_upsampling: bool = True     # False: RVT's transposed-convolution upsampling of features
+    upsample_hidden: int = 256
+    local_rotation_features: bool = True  # False: RVT's global (pooled) rotation features
+    rotation_feature_dim: int = 64     # per view, for each of the local and the pooled feature
+    rotation_bins: int = 72            # 5 degrees per bin per Euler axis
+    head_hidden: int = 256
+    splat_radius: float = 0.012        # cube units (the cube spans 2): ~1.3 px at 224 px
+    heatmap_sigma: float = 1.5         # px, Gaussian heatmap target
+    stage2_noise: float = 0.05         # m, training: stage 2 is centred on the target plus U(-noise, noise)
+    attention_dropout: float = 0.0
+
+    @property
+    def tokens_per_side(self) -> int:
+        return self.image_size // self.patch_size
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["views"] = list(self.views)
+        return d
+
+    @staticmethod
+    def from_dict(d: dict) -> "ModelConfig":
+        known = {f.name for f in fields(ModelConfig)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown model config fields: {', '.join(sorted(unknown))}")
+        d = dict(d)
+        d["views"] = tuple(d["views"])
+        return ModelConfig(**d)
+
+    def validate(self) -> None:
+        if self.image_size % self.patch_size:
+            raise ValueError(f"image_size {self.image_size} is not a multiple of patch_size {self.patch_size}")
+        if not 0 <= self.within_view_layers <= self.depth:
+            raise ValueError("within_view_layers must be between 0 and depth")
+        if self.stages not in (1, 2):
+            raise ValueError("stages must be 1 or 2")
+
+
+RVT2 = ModelConfig(name="rvt2")
+RVT = replace(RVT2, name="rvt", views=RVT1_VIEWS, image_size=220, patch_size=11, stages=1, convex_upsampling=False,
+              local_rotation_features=False)
+SMALL = replace(RVT2, name="small", image_size=64, patch_size=8, depth=2, within_view_layers=1, width=128, heads=4,
+                head_dim=32, mlp_ratio=2, patch_channels=32, proprio_channels=32, upsample_hidden=64,
+                rotation_feature_dim=32, head_hidden=128, splat_radius=0.03, lang_tokens=16)
+
+CONFIGS = {c.name: c for c in (RVT2, RVT, SMALL)}
+
+
+def get_config(name: str) -> ModelConfig:
+    from rvt2cli.errors import UserError
+
+    if name not in CONFIGS:
+        raise UserError(f"unknown model config {name!r}; known: {', '.join(CONFIGS)}")
+    return CONFIGS[name]

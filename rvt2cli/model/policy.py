@@ -1,0 +1,130 @@
+"""The RVT-2 policy: observation -> next keyframe (position, rotation bins, gripper, collision flag).
+
+Stage 1 renders the scene cube from fixed virtual views and predicts a heatmap per view; the 3D point
+the heatmaps agree on is where stage 2 zooms in (training: the true target plus noise). Stage 2
+re-renders the cloud around that point, predicts the final point, and the action head reads the
+stage-2 features at that point. Inputs and outputs are in the normalised scene cube (see Workspace).
+"""
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from rvt2cli.model.action_head import ActionHead
+from rvt2cli.model.config import ModelConfig
+from rvt2cli.model.heatmap import make_heatmap_head
+from rvt2cli.model.locate import heatmaps_to_point
+from rvt2cli.model.mvt import MultiViewTransformer
+from rvt2cli.render.cameras import Cameras, cube_rig, project, zoom_rig
+from rvt2cli.render.channels import network_images
+
+
+@dataclass
+class Observation:
+    points: torch.Tensor      # [B, N, 3] cube coordinates (padded; see num_points)
+    rgb: torch.Tensor         # [B, N, 3] in [0, 1]
+    num_points: torch.Tensor  # [B] valid points per cloud
+    proprio: torch.Tensor     # [B, proprio_dim]
+    lang: torch.Tensor        # [B, L, 384]
+
+    def to(self, device) -> "Observation":
+        return Observation(*(t.to(device, non_blocking=True) for t in (self.points, self.rgb, self.num_points, self.proprio, self.lang)))
+
+
+@dataclass
+class StageOutput:
+    cameras: Cameras
+    tokens: torch.Tensor      # [B, V, D, t, t]
+    logits: torch.Tensor      # [B, V, H, W] heatmap logits
+
+
+@dataclass
+class Prediction:
+    position: torch.Tensor    # [B, 3] cube coordinates
+    rot_bins: torch.Tensor    # [B, 3]
+    gripper_open: torch.Tensor       # [B] bool
+    ignore_collisions: torch.Tensor  # [B] bool
+    stage1_position: torch.Tensor    # [B, 3]
+    stages: list[StageOutput]
+
+
+class Stage(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.mvt = MultiViewTransformer(cfg)
+        self.heatmap = make_heatmap_head(cfg.width, cfg.patch_size, cfg.upsample_hidden, cfg.convex_upsampling)
+
+    def forward(self, images: torch.Tensor, proprio: torch.Tensor, lang: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        tokens = self.mvt(images, proprio, lang)
+        b, v = tokens.shape[:2]
+        logits = self.heatmap(tokens.flatten(0, 1)).unflatten(0, (b, v))
+        return tokens, logits
+
+
+class RVT2Policy(nn.Module):
+    def __init__(self, cfg: ModelConfig, render_backend: str = "warp"):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.render_backend = render_backend
+        self.stages = nn.ModuleList(Stage(cfg) for _ in range(cfg.stages))
+        self.action = ActionHead(cfg)
+
+    # --- cameras and rendering --------------------------------------------------------------------
+    def cameras(self, stage: int, batch: int, device, center: torch.Tensor | None = None) -> Cameras:
+        if stage == 0:
+            return cube_rig(self.cfg.views, self.cfg.image_size, batch_size=batch, device=device)
+        return zoom_rig(center, zoom=self.cfg.zoom, views=self.cfg.views, image_size=self.cfg.image_size)
+
+    def box(self, stage: int, center: torch.Tensor | None, like: torch.Tensor) -> tuple[torch.Tensor, float]:
+        """The box a stage's views cover: (centre [B, 3], half extent)."""
+        if stage == 0:
+            return like.new_zeros(like.shape[0], 3), 1.0
+        return center, 1.0 / self.cfg.zoom
+
+    @torch.no_grad()
+    def render(self, obs: Observation, cameras: Cameras) -> torch.Tensor:
+        return network_images(obs.points, obs.rgb, cameras, self.cfg.image_size, num_points=obs.num_points,
+                              splat_radius=self.cfg.splat_radius, backend=self.render_backend)
+
+    def run_stage(self, stage: int, obs: Observation, center: torch.Tensor | None = None) -> StageOutput:
+        cameras = self.cameras(stage, obs.points.shape[0], obs.points.device, center)
+        images = self.render(obs, cameras)
+        tokens, logits = self.stages[stage](images, obs.proprio, obs.lang)
+        return StageOutput(cameras, tokens, logits)
+
+    def locate(self, stage: int, out: StageOutput, center: torch.Tensor | None) -> torch.Tensor:
+        probs = out.logits.float().flatten(-2).softmax(-1).view_as(out.logits)
+        box_center, half = self.box(stage, center, probs)
+        return heatmaps_to_point(probs, out.cameras, box_center, half)
+
+    def action_features(self, out: StageOutput, location: torch.Tensor) -> torch.Tensor:
+        uv, _ = project(location[:, None, :].float(), out.cameras)        # [B, V, 1, 2]
+        probs = None if self.cfg.local_rotation_features else out.logits.float().flatten(-2).softmax(-1).view_as(out.logits)
+        return self.action.features(out.tokens, uv[:, :, 0], probs)
+
+    # --- training and inference -------------------------------------------------------------------
+    def forward_train(self, obs: Observation, target_position: torch.Tensor, target_rot_bins: torch.Tensor,
+                      stage2_center: torch.Tensor | None = None) -> dict:
+        """Teacher-forced pass: stage 2 is centred on `stage2_center` (target + noise), the action head
+        reads features at the target, the rotation heads see the true earlier bins."""
+        outputs = [self.run_stage(0, obs)]
+        if self.cfg.stages == 2:
+            outputs.append(self.run_stage(1, obs, stage2_center))
+        action = self.action(self.action_features(outputs[-1], target_position), target_rot_bins)
+        return {"stages": outputs, "action": action}
+
+    forward = forward_train  # what DistributedDataParallel calls
+
+    @torch.no_grad()
+    def predict(self, obs: Observation) -> Prediction:
+        outputs = [self.run_stage(0, obs)]
+        position = stage1 = self.locate(0, outputs[0], None)
+        if self.cfg.stages == 2:
+            outputs.append(self.run_stage(1, obs, stage1))
+            position = self.locate(1, outputs[1], stage1)
+        action = self.action(self.action_features(outputs[-1], position))
+        rot_bins = torch.stack([action["rot_x"].argmax(-1), action["rot_y"].argmax(-1), action["rot_z"].argmax(-1)], dim=-1)
+        return Prediction(position=position, rot_bins=rot_bins, gripper_open=action["gripper"].argmax(-1) == 1,
+                          ignore_collisions=action["collision"].argmax(-1) == 1, stage1_position=stage1, stages=outputs)

@@ -1,0 +1,109 @@
+"""Keyframe training samples, read from annotated episode files into memory.
+
+A sample is the fused cloud at an observation frame, the proprio state there, the instruction, and
+the next keyframe after it (position, orientation, gripper, collision flag) as the target.
+"""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from rvt2cli.data import read_episode
+from rvt2cli.data import topics
+from rvt2cli.data.reader import read_episode_overview
+from rvt2cli.errors import UserError
+
+MAX_KEYFRAME_STEPS = 25  # the time feature counts keyframes reached, over this horizon (as PerAct's episode length)
+
+
+def time_feature(keyframes_reached: int) -> float:
+    """1 at the start of an episode, -1 after MAX_KEYFRAME_STEPS keyframes (PerAct's low-dim time)."""
+    return 1.0 - 2.0 * min(keyframes_reached, MAX_KEYFRAME_STEPS) / MAX_KEYFRAME_STEPS
+
+
+def proprio_vector(gripper_open: bool, finger_positions, keyframes_reached: int) -> np.ndarray:
+    """[gripper open (0/1), left finger, right finger (m), time]: RLBench's low-dim state."""
+    return np.array([float(gripper_open), float(finger_positions[0]), float(finger_positions[1]),
+                     time_feature(keyframes_reached)], dtype=np.float32)
+
+
+@dataclass
+class SampleSet:
+    tasks: list[str] = field(default_factory=list)
+    instructions: list[str] = field(default_factory=list)
+    bounds: dict[str, list[float]] = field(default_factory=dict)   # per task
+    episodes: list[str] = field(default_factory=list)
+    xyz: list[np.ndarray] = field(default_factory=list)            # per sample [N, 3] float32, world frame
+    rgb: list[np.ndarray] = field(default_factory=list)            # per sample [N, 3] uint8
+    proprio: list[np.ndarray] = field(default_factory=list)
+    target_position: list[np.ndarray] = field(default_factory=list)
+    target_quaternion: list[np.ndarray] = field(default_factory=list)  # xyzw
+    target_gripper_open: list[bool] = field(default_factory=list)
+    target_ignore_collisions: list[bool] = field(default_factory=list)
+    task_index: list[int] = field(default_factory=list)
+    instruction_index: list[int] = field(default_factory=list)
+    episode_index: list[int] = field(default_factory=list)
+    skipped_empty: int = 0
+    skipped_failures: int = 0
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def _index(self, table: list[str], value: str) -> int:
+        if value not in table:
+            table.append(value)
+        return table.index(value)
+
+    def add_episode(self, path: Path) -> int:
+        ep = read_episode(path)
+        task = self._index(self.tasks, ep.meta.task)
+        self.bounds[ep.meta.task] = list(ep.meta.scene_bounds)
+        instruction = self._index(self.instructions, ep.instruction["text"])
+        episode = self._index(self.episodes, str(path))
+        keyframes = ep.keyframes["keyframes"]
+        added = 0
+        for sample in ep.keyframes["samples"]:
+            frame, k = sample["obs_frame"], sample["keyframe"]
+            cloud = ep.cloud(frame)
+            if len(cloud) == 0:
+                self.skipped_empty += 1
+                continue
+            target = keyframes[k]
+            self.xyz.append(cloud.xyz)
+            self.rgb.append(cloud.rgb)
+            self.proprio.append(proprio_vector(ep.robot.gripper_command[frame] > 0, ep.robot.joint_positions[frame, -2:], k))
+            self.target_position.append(np.asarray(target["tcp_pose"][:3], np.float32))
+            self.target_quaternion.append(np.asarray(target["tcp_pose"][3:], np.float64))
+            self.target_gripper_open.append(target["gripper_open"])
+            self.target_ignore_collisions.append(target["ignore_collisions"])
+            self.task_index.append(task)
+            self.instruction_index.append(instruction)
+            self.episode_index.append(episode)
+            added += 1
+        return added
+
+
+def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True) -> SampleSet:
+    """Read every episode's samples. Refuses, in one line, files without keyframes."""
+    unannotated, failures, usable = [], [], []
+    for path in paths:
+        overview = read_episode_overview(path)
+        if not overview.meta.success and not include_failures:
+            failures.append(path)
+        elif topics.KEYFRAMES not in overview.topics:
+            unannotated.append(path)
+        else:
+            usable.append(path)
+    if unannotated:
+        names = ", ".join(str(p) for p in unannotated[:3]) + (f" (+{len(unannotated) - 3} more)" if len(unannotated) > 3 else "")
+        folder = unannotated[0].parent
+        raise UserError(f"{names}: no keyframes; run `rvt2 extract-keyframes {folder}/` first")
+    samples = SampleSet()
+    for path in tqdm(usable, desc="load samples", unit="ep", disable=not progress):
+        samples.add_episode(path)
+    if len(samples) == 0:
+        raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else ""))
+    samples.skipped_failures = len(failures)
+    return samples

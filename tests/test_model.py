@@ -1,0 +1,166 @@
+"""The RVT-2 network's parts, one property each (small config, CPU)."""
+
+import numpy as np
+import pytest
+import torch
+
+from rvt2cli.model.action_head import ActionHead
+from rvt2cli.model.config import RVT, RVT2, SMALL
+from rvt2cli.model.heatmap import ConvexUpsampleHeatmap, TransposedConvHeatmap
+from rvt2cli.model.locate import gaussian_targets, heatmaps_to_point
+from rvt2cli.model.loss import policy_loss
+from rvt2cli.model.mvt import MultiViewTransformer
+from rvt2cli.model.policy import Observation, RVT2Policy
+from rvt2cli.model.rotation import angle_between, bins_to_quaternion, quaternion_to_bins
+from rvt2cli.render.cameras import cube_rig, zoom_rig
+from rvt2cli.render.channels import NUM_CHANNELS
+from rvt2cli.train.optim import Lamb
+
+
+def observation(cfg, batch=2, points=2000, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return Observation(points=torch.rand(batch, points, 3, generator=g) * 1.8 - 0.9,
+                       rgb=torch.rand(batch, points, 3, generator=g),
+                       num_points=torch.tensor([points, points // 2] + [points] * (batch - 2))[:batch],
+                       proprio=torch.randn(batch, cfg.proprio_dim, generator=g),
+                       lang=torch.randn(batch, cfg.lang_tokens, 384, generator=g))
+
+
+def test_multi_view_transformer_shapes():
+    cfg = SMALL
+    mvt = MultiViewTransformer(cfg)
+    t = cfg.tokens_per_side
+    out = mvt(torch.randn(2, 3, NUM_CHANNELS, 64, 64), torch.randn(2, 4), torch.randn(2, cfg.lang_tokens, 384))
+    assert out.shape == (2, 3, cfg.width, t, t)
+
+
+def test_within_view_layers_do_not_mix_views():
+    cfg = SMALL  # one within-view layer, then one joint layer
+    mvt = MultiViewTransformer(cfg).eval()
+    images = torch.randn(1, 3, NUM_CHANNELS, 64, 64)
+    proprio, lang = torch.randn(1, 4), torch.randn(1, cfg.lang_tokens, 384)
+    x0 = mvt.to_width(torch.cat([mvt.patchify(images[0]).flatten(2).transpose(1, 2),
+                                 mvt.proprio(proprio)[:, None].expand(3, 64, -1)], -1) + mvt.position)
+    after_first = mvt.blocks[0](x0)
+    changed = images.clone()
+    changed[0, 2] += 1.0  # only the third view changes
+    x1 = mvt.to_width(torch.cat([mvt.patchify(changed[0]).flatten(2).transpose(1, 2),
+                                 mvt.proprio(proprio)[:, None].expand(3, 64, -1)], -1) + mvt.position)
+    after_first_changed = mvt.blocks[0](x1)
+    assert torch.allclose(after_first[:2], after_first_changed[:2], atol=1e-6)
+    assert not torch.allclose(after_first[2], after_first_changed[2])
+    # the joint layers do mix them
+    full, full_changed = mvt(images, proprio, lang), mvt(changed, proprio, lang)
+    assert not torch.allclose(full[0, 0], full_changed[0, 0])
+
+
+@pytest.mark.parametrize("head", [ConvexUpsampleHeatmap, TransposedConvHeatmap])
+def test_heatmap_heads_reach_full_resolution(head):
+    h = head(width=32, patch=8, hidden=16)
+    assert h(torch.randn(5, 32, 8, 8)).shape == (5, 64, 64)
+
+
+def test_convex_upsampling_is_a_convex_combination_of_neighbour_logits():
+    torch.manual_seed(0)
+    head = ConvexUpsampleHeatmap(width=16, patch=4, hidden=8)
+    features = torch.randn(2, 16, 6, 6)
+    weights = head.convex_weights(features)
+    assert weights.shape == (2, 9, 4, 4, 6, 6)
+    assert torch.all(weights >= 0) and torch.allclose(weights.sum(1), torch.ones(2, 4, 4, 6, 6))
+    fine = head(features)
+    coarse = head.coarse(features)[:, 0]                                    # [2, 6, 6]
+    padded = torch.nn.functional.pad(coarse, (1, 1, 1, 1))                  # the unfold's zero padding
+    neighbourhood = padded.unfold(1, 3, 1).unfold(2, 3, 1)                  # [2, 6, 6, 3, 3]
+    lo = neighbourhood.amin(dim=(-2, -1)).repeat_interleave(4, 1).repeat_interleave(4, 2)
+    hi = neighbourhood.amax(dim=(-2, -1)).repeat_interleave(4, 1).repeat_interleave(4, 2)
+    assert torch.all(fine >= lo - 1e-5) and torch.all(fine <= hi + 1e-5)
+
+
+@pytest.mark.parametrize("views", [RVT2.views, RVT.views])
+@pytest.mark.parametrize("zoomed", [False, True])
+def test_heatmaps_to_point_recovers_a_planted_point_exactly(views, zoomed):
+    size, batch = 56, 3
+    g = torch.Generator().manual_seed(1)
+    if zoomed:
+        center, half = torch.rand(batch, 3, generator=g) - 0.5, 0.25
+        cameras = zoom_rig(center, zoom=4.0, views=views, image_size=size)
+    else:
+        center, half = torch.zeros(batch, 3), 1.0
+        cameras = cube_rig(views, size, batch_size=batch)
+    ijk = torch.randint(0, size, (batch, 3), generator=g)
+    planted = center + (-1 + (ijk + 0.5) * 2 / size) * half                # a voxel centre
+    heat = gaussian_targets(planted, cameras, size, sigma=1.5)
+    found = heatmaps_to_point(heat, cameras, center, half, chunk=5)
+    assert torch.allclose(found, planted, atol=1e-6)
+
+
+def test_gaussian_targets_peak_at_the_projection():
+    cameras = cube_rig(RVT2.views, 32)
+    heat = gaussian_targets(torch.tensor([[0.0, 0.0, 0.0]]), cameras, 32, sigma=1.5)
+    assert torch.allclose(heat.sum(dim=(-2, -1)), torch.ones(1, 3))
+    for v in range(3):  # the centre of the cube is at the image centre, between pixels 15 and 16
+        peak = divmod(int(heat[0, v].argmax()), 32)
+        assert peak[0] in (15, 16) and peak[1] in (15, 16)
+
+
+def test_rotation_bins_round_trip():
+    rng = np.random.default_rng(0)
+    bins = rng.integers(0, 72, size=(500, 3))
+    bins[:, 1] = rng.integers(19, 53, size=500)  # Euler y within (-90, 90): the canonical range
+    assert np.array_equal(quaternion_to_bins(bins_to_quaternion(bins)), bins)
+    quats = rng.normal(size=(500, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    error = angle_between(bins_to_quaternion(quaternion_to_bins(quats)), quats)
+    assert error.max() <= 7.5 + 1e-6  # half a bin on each axis at most, composed (triangle inequality)
+
+
+def test_action_head_autoregression_uses_earlier_bins():
+    cfg = SMALL
+    torch.manual_seed(0)
+    head = ActionHead(cfg)
+    tokens = torch.randn(2, 3, cfg.width, 8, 8)
+    feats = head.features(tokens, torch.full((2, 3, 2), 32.0), None)
+    assert feats.shape == (2, 3 * 2 * cfg.rotation_feature_dim)
+    a = head(feats, torch.tensor([[0, 10, 20], [0, 10, 20]]))
+    b = head(feats, torch.tensor([[5, 10, 20], [5, 10, 20]]))
+    assert torch.equal(a["rot_x"], b["rot_x"]) and not torch.allclose(a["rot_y"], b["rot_y"])
+    assert {k: v.shape for k, v in a.items()} == {"rot_x": (2, 72), "rot_y": (2, 72), "rot_z": (2, 72),
+                                                   "gripper": (2, 2), "collision": (2, 2)}
+
+
+@pytest.mark.parametrize("cfg", [SMALL, RVT2], ids=["small", "rvt2"])
+def test_policy_forward_backward_and_predict_shapes(cfg):
+    torch.manual_seed(0)
+    policy = RVT2Policy(cfg, render_backend="torch" if cfg is RVT2 else "warp")
+    obs = observation(cfg, batch=1 if cfg is RVT2 else 2)
+    b = obs.points.shape[0]
+    target = torch.zeros(b, 3)
+    bins = torch.zeros(b, 3, dtype=torch.long)
+    out = policy(obs, target, bins, target + 0.01)
+    assert len(out["stages"]) == 2 and out["stages"][0].logits.shape == (b, 3, cfg.image_size, cfg.image_size)
+    losses = policy_loss(out, target, bins, bins[:, 0], bins[:, 0], cfg.image_size, cfg.heatmap_sigma)
+    losses["total"].backward()
+    assert all(p.grad is not None for p in policy.parameters())
+    if cfg is SMALL:
+        pred = policy.predict(obs)
+        assert pred.position.shape == (b, 3) and pred.rot_bins.shape == (b, 3) and pred.gripper_open.dtype == torch.bool
+
+
+def test_loss_decreases_on_a_fixed_batch():
+    torch.manual_seed(0)
+    cfg = SMALL
+    policy = RVT2Policy(cfg)
+    obs = observation(cfg, batch=2)
+    target = torch.tensor([[0.3, -0.2, 0.1], [-0.4, 0.5, -0.3]])
+    bins = torch.tensor([[10, 40, 70], [3, 30, 60]])
+    grip, coll = torch.tensor([1, 0]), torch.tensor([0, 1])
+    optimizer = Lamb(policy.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(30):
+        out = policy(obs, target, bins, target)
+        loss = policy_loss(out, target, bins, grip, coll, cfg.image_size, cfg.heatmap_sigma)["total"]
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0], losses

@@ -1,0 +1,84 @@
+"""`rvt2 train` on real recorded demos: it learns, it resumes exactly, and it refuses bad input."""
+
+import csv
+import json
+
+import pytest
+import torch
+
+from conftest import TINY_TRAIN, assert_one_line_error
+from rvt2cli.errors import UserError
+from rvt2cli.train.checkpoint import load_checkpoint, load_policy
+from rvt2cli.train.metrics import prediction_errors
+from rvt2cli.train.trainer import TrainOptions, train
+
+pytestmark = pytest.mark.sim
+
+
+def test_small_config_overfits_tiny_dataset(tiny_checkpoint):
+    run_dir, result = tiny_checkpoint
+    assert result.steps == 300 and result.skipped_steps == 0
+    assert sum(result.losses[-10:]) / 10 < 0.5 * result.losses[0]
+    policy, ckpt = load_policy(run_dir)
+    errors = prediction_errors(policy, result.packed)
+    assert errors["translation_mm"] < 10.0, errors  # below 1 cm on the training samples
+    assert errors["gripper_accuracy"] >= 0.9
+    assert ckpt.info["tasks"] == ["stack_cube"] and ckpt.info["step"] == 300
+
+
+def test_run_folder_layout(tiny_checkpoint):
+    run_dir, _ = tiny_checkpoint
+    assert (run_dir / "last").read_text().strip() == "checkpoints/step_0000300"
+    ckpt_dir = run_dir / "checkpoints" / "step_0000300"
+    for name in ("config.json", "model.safetensors", "instructions.safetensors", "training_state.pt"):
+        assert (ckpt_dir / name).is_file()
+    config = json.loads((ckpt_dir / "config.json").read_text())
+    assert config["model"]["name"] == "small" and config["instructions"]
+    rows = list(csv.DictReader(open(run_dir / "train.csv")))
+    assert [int(r["step"]) for r in rows][-1] == 300 and float(rows[-1]["samples_per_s"]) > 0
+    assert any((run_dir / "tb").iterdir())
+    assert (run_dir / "checkpoints" / "step_0000150").is_dir()
+
+
+def test_resume_reproduces_the_same_losses(tiny_dataset, tmp_path):
+    opts = dict(data=[str(tiny_dataset)], steps=6, save_every=3, **TINY_TRAIN)
+    straight = train(TrainOptions(out=str(tmp_path / "a"), **opts), say=lambda *_: None)
+    first = train(TrainOptions(out=str(tmp_path / "b"), **{**opts, "steps": 3}), say=lambda *_: None)
+    # a run of 3 steps has its cosine schedule end at step 3: resume a copy of the 6-step run instead
+    (tmp_path / "c").mkdir()
+    import shutil
+
+    shutil.copytree(tmp_path / "a" / "checkpoints" / "step_0000003", tmp_path / "c" / "checkpoints" / "step_0000003")
+    (tmp_path / "c" / "last").write_text("checkpoints/step_0000003\n")
+    resumed = train(TrainOptions(out=str(tmp_path / "c"), resume=True, **opts), say=lambda *_: None)
+    assert first.losses == straight.losses[:3]
+    assert resumed.losses == straight.losses[3:]
+    a = load_checkpoint(tmp_path / "a").weights
+    c = load_checkpoint(tmp_path / "c").weights
+    assert all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_resume_with_another_config_is_refused(tiny_checkpoint, tiny_dataset):
+    run_dir, _ = tiny_checkpoint
+    with pytest.raises(UserError, match=r"was trained with config 'small'.*--config small"):
+        train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), resume=True, config="rvt", steps=301))
+
+
+def test_training_into_an_existing_run_needs_resume(tiny_checkpoint, tiny_dataset, cli):
+    run_dir, _ = tiny_checkpoint
+    r = cli("train", "--data", tiny_dataset, "--out", run_dir, "--config", "small", "--steps", "1")
+    assert_one_line_error(r, "already holds a run", "--resume")
+
+
+def test_data_without_keyframes_is_refused(tmp_path, cli):
+    from rvt2cli.record.recorder import RecordOptions, record
+
+    record("push_cube", 1, tmp_path, options=RecordOptions(cameras=("front",), image_size=32))
+    r = cli("train", "--data", tmp_path, "--out", tmp_path / "run", "--config", "small")
+    assert_one_line_error(r, "push_cube_0000.mcap", "no keyframes", "rvt2 extract-keyframes")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without a GPU")
+def test_cuda_without_gpu_is_a_clear_error(tiny_dataset, tmp_path, cli):
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "run", "--config", "small", "--device", "cuda")
+    assert_one_line_error(r, "--device cuda", "no CUDA GPU", "--device cpu")
