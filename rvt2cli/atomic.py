@@ -2,7 +2,7 @@
 
 Every output is written under a hidden temporary name in the destination folder and renamed over
 the final name only once it is complete (rename is atomic on POSIX file systems). A crash, a
-Ctrl-C or a full disk leaves at most a `.NAME.tmp-PID` file behind, never a truncated NAME.
+Ctrl-C or a full disk leaves at most a hidden `.STEM.tmp-PID.SUFFIX` file behind, never a truncated NAME.
 """
 
 import contextlib
@@ -14,7 +14,8 @@ from rvt2cli.errors import UserError
 
 
 def temp_path_for(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    """Hidden, unique per process, and with the same suffix (writers that go by it still work)."""
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
 
 
 @contextlib.contextmanager

@@ -31,6 +31,7 @@ class Task:
     image_size: int = DEFAULT_IMAGE_SIZE
     variables: dict = field(default_factory=dict)
     show_hidden: tuple[str, ...] = ()  # objects ManiSkill hides from cameras that the policy must see
+    planner_speed: float = 0.9         # fraction of the Panda's joint velocity/acceleration limits (as the expert)
     env_kwargs: dict = field(default_factory=dict)
 
     def instruction(self, seed: int) -> tuple[str, int]:

@@ -17,6 +17,7 @@ COMMAND_MODULES = [
     "rvt2cli.cli.info",
     "rvt2cli.cli.keyframes",
     "rvt2cli.cli.train",
+    "rvt2cli.cli.eval",
 ]
 
 

@@ -1,1 +1,1 @@
-"""rvt2cli.eval"""
+"""Closed-loop evaluation: predicted keyframes executed by a motion planner in the simulator."""

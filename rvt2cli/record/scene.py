@@ -39,6 +39,12 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
             super()._load_scene(options)
             self._hidden_objects = [o for o in self._hidden_objects if o.name not in show]
 
+        @property
+        def _default_human_render_camera_configs(self):
+            config = super()._default_human_render_camera_configs
+            config.width = config.height = 256  # videos: software rendering is slow at 512 px
+            return config
+
     RVT2Scene.__name__ = f"RVT2{base.__name__}"
     env = RVT2Scene(obs_mode="none", control_mode="pd_joint_pos", reward_mode="none", sim_backend="cpu",
                     render_mode="rgb_array", **task.env_kwargs)
@@ -74,24 +80,35 @@ def _body_name(entity_name: str) -> str:
     return re.sub(r"_\d+$", "", re.sub(r"^scene-\d+_", "", entity_name))
 
 
-def robot_contacts(env) -> list[str]:
-    """Scene bodies touched by the robot or by an object the robot holds (between both fingers)."""
-    u = env.unwrapped
-    qpos = u.agent.robot.get_qpos()[0]
-    gripper_width = float(qpos[-2] + qpos[-1])
-    robot_links = {link.name for link in u.agent.robot.get_links()}
+def _contact_pairs(env) -> list[tuple[str, str]]:
     pairs = []
-    for contact in u.scene.get_contacts():
+    for contact in env.unwrapped.scene.get_contacts():
         if sum(float(np.linalg.norm(p.impulse)) for p in contact.points) > CONTACT_IMPULSE:
             pairs.append((contact.bodies[0].entity.name, contact.bodies[1].entity.name))
-    touching = {}
+    return pairs
+
+
+def _held(env, pairs) -> set[str]:
+    """Entity names of objects between the fingers: touching both, with the gripper not shut."""
+    qpos = env.unwrapped.agent.robot.get_qpos()[0]
+    if float(qpos[-2] + qpos[-1]) <= MIN_HELD_WIDTH:
+        return set()
+    touching: dict[str, set[str]] = {}
     for a, b in pairs:
         touching.setdefault(a, set()).add(b)
         touching.setdefault(b, set()).add(a)
-    held = set()
-    if gripper_width > MIN_HELD_WIDTH:
-        held = {body for body, others in touching.items() if all(f in others for f in FINGER_LINKS)}
-    grip = robot_links | held
+    return {body for body, others in touching.items() if all(f in others for f in FINGER_LINKS)}
+
+
+def held_objects(env) -> set[str]:
+    """Names (as robot_contacts gives them) of the objects in the gripper."""
+    return {_body_name(n) for n in _held(env, _contact_pairs(env))}
+
+
+def robot_contacts(env) -> list[str]:
+    """Scene bodies touched by the robot or by an object the robot holds (between both fingers)."""
+    pairs = _contact_pairs(env)
+    grip = {link.name for link in env.unwrapped.agent.robot.get_links()} | _held(env, pairs)
     touched = {b for a, b in pairs if a in grip and b not in grip} | {a for a, b in pairs if b in grip and a not in grip}
     return sorted({_body_name(n) for n in touched})
 
@@ -109,8 +126,9 @@ def restore_sim_state(env, state: dict) -> None:
                                   for group, items in state.items()})
 
 
-def capture_cameras(env) -> dict[str, CameraFrame]:
-    """Render every rvt2 camera at the current simulator state (hidden objects stay hidden)."""
+def capture_cameras(env, segmentation: dict | None = None) -> dict[str, CameraFrame]:
+    """Render every rvt2 camera at the current simulator state (hidden objects stay hidden).
+    If a dict is given as `segmentation`, each camera's per-pixel actor/link ids are put into it."""
     u = env.unwrapped
     for obj in u._hidden_objects:
         obj.hide_visual()
@@ -122,8 +140,10 @@ def capture_cameras(env) -> dict[str, CameraFrame]:
         tex = sensor.get_obs(rgb=True, depth=False, position=True, segmentation=True, apply_texture_transforms=False)
         color = tex["Color"][0, ..., :3].cpu().numpy()
         position = tex["Position"][0, ..., :3].cpu().numpy()   # OpenGL camera frame: the camera looks along -z
-        segmentation = tex["Segmentation"][0, ..., 1].cpu().numpy()  # actor-level ids, 0 = nothing hit
-        depth = np.where(segmentation > 0, -position[..., 2], 0.0).astype(np.float32)
+        ids = tex["Segmentation"][0, ..., 1].cpu().numpy()  # actor/link-level ids, 0 = nothing hit
+        depth = np.where(ids > 0, -position[..., 2], 0.0).astype(np.float32)
+        if segmentation is not None:
+            segmentation[name] = ids
         params = sensor.get_params()
         world2cam = params["extrinsic_cv"][0].cpu().numpy().astype(np.float64)
         rot_c2w = world2cam[:, :3].T
@@ -135,3 +155,13 @@ def capture_cameras(env) -> dict[str, CameraFrame]:
             cam2world=cam2world,
         )
     return frames
+
+
+def segmentation_ids(env, body_names: set[str], include_robot: bool) -> np.ndarray:
+    """Segmentation ids of the named scene bodies (as robot_contacts names them), and of every
+    robot link if asked."""
+    from mani_skill.utils.structs import Actor, Link
+
+    ids = [seg_id for seg_id, obj in env.unwrapped.segmentation_id_map.items()
+           if (include_robot and isinstance(obj, Link)) or (isinstance(obj, Actor) and obj.name in body_names)]
+    return np.asarray(sorted(ids), dtype=np.int64)

@@ -34,6 +34,7 @@ class SampleSet:
     tasks: list[str] = field(default_factory=list)
     instructions: list[str] = field(default_factory=list)
     bounds: dict[str, list[float]] = field(default_factory=dict)   # per task
+    rigs: dict[str, dict] = field(default_factory=dict)            # per task: cameras and image size recorded with
     episodes: list[str] = field(default_factory=list)
     xyz: list[np.ndarray] = field(default_factory=list)            # per sample [N, 3] float32, world frame
     rgb: list[np.ndarray] = field(default_factory=list)            # per sample [N, 3] uint8
@@ -60,6 +61,7 @@ class SampleSet:
         ep = read_episode(path)
         task = self._index(self.tasks, ep.meta.task)
         self.bounds[ep.meta.task] = list(ep.meta.scene_bounds)
+        self.rigs[ep.meta.task] = {"cameras": list(ep.meta.cameras), "image_size": ep.meta.extra.get("image_size")}
         instruction = self._index(self.instructions, ep.instruction["text"])
         episode = self._index(self.episodes, str(path))
         keyframes = ep.keyframes["keyframes"]

@@ -214,7 +214,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     log = RunLog(run_dir, step) if rank == 0 else None
     if rank == 0 and not opts.resume:
         (run_dir / "run.json").write_text(json.dumps({"options": asdict(opts), "episodes": samples.episodes}, indent=2))
-    info = {"tasks": samples.tasks, "bounds": samples.bounds}
+    info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs}
     result = TrainResult(run_dir=run_dir, steps=step, skipped_steps=skipped)
     amp = opts.amp and device.type == "cuda"
     bar = tqdm(total=opts.steps, initial=step, desc=f"train {cfg.name}", unit="step", disable=not (opts.progress and rank == 0),

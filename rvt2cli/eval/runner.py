@@ -1,0 +1,193 @@
+"""`rvt2 eval`: episodes of every task on unseen seeds, for the policy and (optionally) the oracle,
+in parallel processes, deterministic per seed, with a report, videos and rollout files."""
+
+import multiprocessing
+import os
+import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rvt2cli.data.reader import read_episode_overview
+from rvt2cli.errors import UserError
+from rvt2cli.eval.media import write_rollout, write_video
+from rvt2cli.eval.report import build_report, write_report
+from rvt2cli.eval.rollout import Outcome, run_episode
+from rvt2cli.tasks import get_task
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    checkpoint: str | None
+    tasks: tuple[str, ...] = ()       # default: the checkpoint's training tasks
+    episodes: int = 25
+    seed: int = 10_000                # demos are recorded from seed 0: these seeds are unseen
+    workers: int = 1
+    oracle: bool = False
+    demos: tuple[str, ...] = ()       # oracle from these recorded demos (their seeds) instead of the expert
+    instruction: str | None = None    # another phrasing of the instruction
+    video: bool = False
+    save_rollouts: bool = False
+    keyframe_budget: int = 25
+    out: str | None = None
+    device: str = "cpu"
+
+
+@dataclass(frozen=True)
+class Job:
+    source: str   # "policy" | "oracle"
+    task: str
+    seed: int
+
+
+@dataclass
+class EvalResult:
+    out_dir: Path
+    report: dict
+    outcomes: list[tuple[Job, Outcome]] = field(default_factory=list)
+
+
+# --- one process's simulator, policy and oracle -------------------------------------------------------
+
+class _Worker:
+    def __init__(self, opts: EvalOptions, demos: dict):
+        self.opts, self.demos = opts, demos
+        self.envs, self.policy, self.oracles, self.rigs = {}, None, {}, {}
+        if opts.checkpoint:
+            from rvt2cli.eval.sources import PolicySource
+            from rvt2cli.train.checkpoint import load_policy
+
+            policy, ckpt = load_policy(opts.checkpoint, device=opts.device)
+            self.policy = PolicySource(policy, ckpt, opts.device)
+            self.rigs = ckpt.info.get("rigs", {})
+
+    def env(self, task):
+        """The task's scene, observed with the camera rig the policy's training demos were recorded with."""
+        if task.name not in self.envs:
+            from rvt2cli.record.scene import make_env
+
+            rig = self.rigs.get(task.name, {})
+            self.envs[task.name] = make_env(task, rig.get("cameras"), rig.get("image_size"))
+        return self.envs[task.name]
+
+    def run(self, job: Job) -> Outcome:
+        from rvt2cli.eval.sources import OracleSource
+
+        task = get_task(job.task)
+        env = self.env(task)
+        instruction = self.opts.instruction or task.instruction(job.seed)[0]
+        if job.source == "policy":
+            source = self.policy
+        else:
+            source = self.oracles.setdefault(task.name, OracleSource(env, self.demos))
+        try:
+            return run_episode(env, task, job.seed, source, instruction, self.opts.keyframe_budget,
+                               video_every=2 if self.opts.video else 0)
+        except UserError:
+            raise
+        except Exception as e:  # noqa: BLE001 - a simulator crash costs this episode, not the run
+            return Outcome(task=task.name, seed=job.seed, success=False, failure="error", instruction=instruction,
+                           error=f"{type(e).__name__}: {e}")
+
+
+_worker: _Worker | None = None
+
+
+def _init(opts: EvalOptions, demos: dict) -> None:
+    global _worker
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(1)
+    _worker = _Worker(opts, demos)
+
+
+def _run(job: Job) -> Outcome:
+    return _worker.run(job)
+
+
+# --- the whole evaluation ------------------------------------------------------------------------------
+
+def _demo_seeds(paths) -> dict[tuple[str, int], str]:
+    from rvt2cli.data.paths import episode_paths
+
+    demos = {}
+    for path in episode_paths(list(paths)):
+        meta = read_episode_overview(path).meta
+        demos[(meta.task, meta.seed)] = str(path)
+    return demos
+
+
+def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict) -> list[Job]:
+    tasks = list(opts.tasks) or checkpoint_tasks or sorted({t for t, _ in demos})
+    if not tasks:
+        raise UserError("no tasks to evaluate: give --tasks (or a checkpoint, whose training tasks are the default)")
+    for name in tasks:
+        get_task(name)
+        if checkpoint_tasks and name not in checkpoint_tasks:
+            warnings.warn(f"task {name!r} is not in the checkpoint's training set ({', '.join(checkpoint_tasks)}); evaluating anyway")
+    jobs = []
+    for name in tasks:
+        demo_seeds = sorted(seed for task, seed in demos if task == name)
+        if opts.checkpoint:
+            jobs += [Job("policy", name, s) for s in range(opts.seed, opts.seed + opts.episodes)]
+        if opts.oracle:
+            seeds = demo_seeds if demos else list(range(opts.seed, opts.seed + opts.episodes))
+            jobs += [Job("oracle", name, s) for s in seeds]
+    return jobs
+
+
+def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
+    """Run every job; `on_start(number_of_episodes)` once the inputs are checked, `on_outcome(job,
+    outcome, finished)` after each episode (the CLI's progress bar)."""
+    if not opts.checkpoint and not opts.oracle:
+        raise UserError("eval needs --checkpoint (and/or --oracle)")
+    checkpoint_tasks, checkpoint_path = [], None
+    if opts.checkpoint:
+        from rvt2cli.train.checkpoint import load_checkpoint
+
+        ckpt = load_checkpoint(opts.checkpoint)  # refuses missing or foreign checkpoints before any work
+        checkpoint_tasks, checkpoint_path = list(ckpt.info.get("tasks", [])), ckpt.path
+    demos = _demo_seeds(opts.demos) if opts.demos else {}
+    jobs = plan_jobs(opts, checkpoint_tasks, demos)
+    out_dir = Path(opts.out) if opts.out else (Path(opts.checkpoint) / "eval" if opts.checkpoint else Path("eval"))
+    start = time.perf_counter()
+    finished: list[tuple[Job, Outcome]] = []
+    if on_start:
+        on_start(len(jobs))
+
+    def done(job: Job, outcome: Outcome) -> None:
+        finished.append((job, outcome))
+        _save_media(opts, out_dir, job, outcome)
+        if on_outcome:
+            on_outcome(job, outcome, finished)
+
+    if opts.workers <= 1:
+        worker = _Worker(opts, demos)
+        for job in jobs:
+            done(job, worker.run(job))
+    else:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(opts.workers, mp_context=context, initializer=_init, initargs=(opts, demos)) as pool:
+            for job, outcome in zip(jobs, pool.map(_run, jobs)):
+                done(job, outcome)
+    results: dict[str, dict[str, list[Outcome]]] = {}
+    for job, outcome in finished:
+        results.setdefault(job.source, {}).setdefault(job.task, []).append(outcome)
+    report = build_report(results, {"checkpoint": str(checkpoint_path) if checkpoint_path else None, "seed": opts.seed,
+                                    "episodes_per_task": opts.episodes, "keyframe_budget": opts.keyframe_budget,
+                                    "instruction": opts.instruction, "seconds": time.perf_counter() - start})
+    write_report(report, out_dir)
+    return EvalResult(out_dir=out_dir, report=report, outcomes=finished)
+
+
+def _save_media(opts: EvalOptions, out_dir: Path, job: Job, outcome: Outcome) -> None:
+    name = f"{job.source}_{job.task}_{job.seed:05d}"
+    if opts.video and outcome.video:
+        (out_dir / "videos").mkdir(parents=True, exist_ok=True)
+        write_video(outcome.video, out_dir / "videos" / f"{name}.mp4")
+    outcome.video = []
+    if opts.save_rollouts:
+        (out_dir / "rollouts").mkdir(parents=True, exist_ok=True)
+        write_rollout(outcome, outcome.control_hz, out_dir / "rollouts" / f"{name}.mcap")
