@@ -90,7 +90,7 @@ def test_heatmaps_to_point_recovers_a_planted_point_exactly(views, zoomed):
     ijk = torch.randint(0, size, (batch, 3), generator=g)
     planted = center + (-1 + (ijk + 0.5) * 2 / size) * half                # a voxel centre
     heat = gaussian_targets(planted, cameras, size, sigma=1.5)
-    found = heatmaps_to_point(heat, cameras, center, half, chunk=5)
+    found = heatmaps_to_point(heat, views, center, half, chunk=5)
     assert torch.allclose(found, planted, atol=1e-6)
 
 

@@ -194,7 +194,11 @@ def assert_background(rendered) -> None:
 def test_empty_and_invisible_clouds_give_background(backend):
     cameras = cube_rig(image_size=8, batch_size=2)
     empty = torch.zeros(2, 0, 3)
-    assert_background(render(empty, torch.zeros(2, 0, 4), cameras, 8, backend=backend))
+    assert_background(render(empty, torch.zeros(2, 0, 4), cameras, 8, splat_radius=0.3, backend=backend))
+    no_scenes = render(
+        torch.zeros(0, 5, 3), torch.zeros(0, 5, 4), cube_rig(batch_size=0), 8, splat_radius=0.3, backend=backend
+    )
+    assert no_scenes.index.shape == (0, 3, 8, 8) and no_scenes.features.shape == (0, 3, 8, 8, 4)
     points = torch.tensor([[[3.0, 3.0, 3.0], [0.0, 0.0, 1.5]], [[-1.5, 0.0, 0.0], [0.2, -1.01, 0.3]]])
     assert_background(render(points, points.clone(), cameras, 8, backend=backend))
     inside = torch.zeros(2, 2, 3)
@@ -281,7 +285,8 @@ def test_splat_prefers_the_nearer_disc(backend):
     far_point = voxel_centres(torch.tensor([7, 9, 3]), size)  # top view (8, 6), deep
     near_point = voxel_centres(torch.tensor([7, 8, 12]), size)  # top view (8, 7), near the camera
     points = torch.stack([far_point, near_point])[None]
-    rendered = render(points, points.clone(), cube_rig(image_size=size), size, splat_radius=1.2 * pixel, backend=backend)
+    cameras = cube_rig(image_size=size)
+    rendered = render(points, points.clone(), cameras, size, splat_radius=1.2 * pixel, backend=backend)
     top = rendered.index[0, 0]
     assert top[8, 6] == 1 and top[8, 7] == 1  # the near disc covers the far point's own pixel
     assert top[8, 5] == 0 and top[8, 8] == 1  # beyond the near disc the far point still shows

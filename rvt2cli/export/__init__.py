@@ -1,1 +1,1 @@
-"""rvt2cli.export"""
+"""Deployable policies: ONNX or TorchScript, with a manifest and the instruction embeddings, parity-checked."""

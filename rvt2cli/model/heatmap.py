@@ -3,7 +3,8 @@
 RVT-2 uses convex upsampling (RAFT, Teed & Deng 2020): at token resolution, predict a coarse logit
 per token and, for each of the p x p pixels a token covers, softmax weights over its 3 x 3 token
 neighbourhood; each pixel's logit is that convex combination of coarse logits. No full-resolution
-feature map is ever built, which is where the memory saving comes from. RVT-1's alternative (the
+feature map is ever built, which is where the memory saving comes from. (The neighbourhood is
+gathered with padding and slices, what F.unfold does, in a form that exports to ONNX.) RVT-1's alternative (the
 ablation baseline) upsamples the features themselves with a transposed convolution.
 """
 
@@ -25,7 +26,9 @@ class ConvexUpsampleHeatmap(nn.Module):
         p = self.patch
         coarse = self.coarse(features)                                   # [N, 1, t, t]
         weights = self.mask(features).view(n, 9, p, p, t, t).softmax(dim=1)
-        neighbours = F.unfold(coarse, kernel_size=3, padding=1).view(n, 9, 1, 1, t, t)
+        padded = F.pad(coarse, (1, 1, 1, 1))
+        neighbours = torch.stack([padded[:, 0, dy:dy + t, dx:dx + t] for dy in range(3) for dx in range(3)], dim=1)
+        neighbours = neighbours.view(n, 9, 1, 1, t, t)                   # the 3 x 3 token neighbourhood, row-major
         fine = (weights * neighbours).sum(dim=1)                         # [N, p, p, t, t]
         return fine.permute(0, 3, 1, 4, 2).reshape(n, t * p, t * p)
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from rvt2cli.render.cameras import Cameras, project
+from rvt2cli.render.cameras import VIEW_AXES, Cameras, project
 
 _PAIRS = ((0, 1), (0, 2), (1, 2))
 
@@ -31,14 +31,14 @@ class ViewAxes:
     row_sign: int
 
 
-def view_axes(cameras: Cameras) -> list[ViewAxes]:
-    rotation = cameras.params[0, :, :9].view(-1, 3, 3)
+def view_axes(views) -> list[ViewAxes]:
+    """From the rig's view names (static: no tensor data, so the argmax traces and exports)."""
     axes = []
-    for r in rotation:
-        col_axis, row_axis = int(r[0].abs().argmax()), int(r[1].abs().argmax())
-        if not (torch.allclose(r[0].abs().max(), r[0].new_tensor(1.0)) and torch.allclose(r[1].abs().max(), r[1].new_tensor(1.0))):
-            raise ValueError("3D argmax needs axis-aligned orthographic views")
-        axes.append(ViewAxes(col_axis, int(r[0, col_axis].sign()), row_axis, int(r[1, row_axis].sign())))
+    for name in views:
+        right, down = VIEW_AXES[name][0], VIEW_AXES[name][1]
+        col_axis = max(range(3), key=lambda i: abs(right[i]))
+        row_axis = max(range(3), key=lambda i: abs(down[i]))
+        axes.append(ViewAxes(col_axis, 1 if right[col_axis] > 0 else -1, row_axis, 1 if down[row_axis] > 0 else -1))
     return axes
 
 
@@ -55,15 +55,16 @@ def _voxel_table(prob: torch.Tensor, axes: ViewAxes) -> tuple[tuple[int, int], t
     return (axes.col_axis, axes.row_axis), table.transpose(1, 2)
 
 
-def heatmaps_to_point(probs: torch.Tensor, cameras: Cameras, box_center: torch.Tensor, box_half: float,
+def heatmaps_to_point(probs: torch.Tensor, views, box_center: torch.Tensor, box_half: float,
                       chunk: int = 8) -> torch.Tensor:
-    """probs [B, V, W, W] (each view sums to 1) -> [B, 3] voxel centre with the best mean score,
-    in cube coordinates; the views cover the box `box_center` +- `box_half`."""
+    """probs [B, V, W, W] (each view sums to 1) of the named axis-aligned orthographic views (a cube or
+    zoom rig) -> [B, 3] voxel centre with the best mean score, in cube coordinates; the views cover
+    the box `box_center` +- `box_half`."""
     b, v, h, w = probs.shape
     if h != w:
         raise ValueError("3D argmax needs square views")
     tables = {pair: probs.new_zeros(b, w, w) for pair in _PAIRS}
-    for view, axes in enumerate(view_axes(cameras)):
+    for view, axes in enumerate(view_axes(views)):
         pair, table = _voxel_table(probs[:, view], axes)
         tables[pair] = tables[pair] + table
     a_xy, a_xz, a_yz = tables[(0, 1)], tables[(0, 2)], tables[(1, 2)]

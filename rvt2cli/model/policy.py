@@ -6,6 +6,7 @@ re-renders the cloud around that point, predicts the final point, and the action
 stage-2 features at that point. Inputs and outputs are in the normalised scene cube (see Workspace).
 """
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -18,6 +19,8 @@ from rvt2cli.model.locate import heatmaps_to_point
 from rvt2cli.model.mvt import MultiViewTransformer
 from rvt2cli.render.cameras import Cameras, cube_rig, project, zoom_rig
 from rvt2cli.render.channels import network_images
+
+MAX_SPLAT_PX = 8  # the renderer's default cap on a disc's radius
 
 
 @dataclass
@@ -83,21 +86,26 @@ class RVT2Policy(nn.Module):
             return like.new_zeros(like.shape[0], 3), 1.0
         return center, 1.0 / self.cfg.zoom
 
+    def splat_reach(self, stage: int) -> int:
+        """The splatting window a stage needs, in pixels, known before any data (orthographic rigs)."""
+        focal = self.cfg.image_size / 2 * (self.cfg.zoom if stage else 1.0)
+        return min(MAX_SPLAT_PX, math.ceil(self.cfg.splat_radius * focal))
+
     @torch.no_grad()
-    def render(self, obs: Observation, cameras: Cameras) -> torch.Tensor:
+    def render(self, obs: Observation, cameras: Cameras, stage: int) -> torch.Tensor:
         return network_images(obs.points, obs.rgb, cameras, self.cfg.image_size, num_points=obs.num_points,
-                              splat_radius=self.cfg.splat_radius, backend=self.render_backend)
+                              splat_radius=self.cfg.splat_radius, backend=self.render_backend, reach_px=self.splat_reach(stage))
 
     def run_stage(self, stage: int, obs: Observation, center: torch.Tensor | None = None) -> StageOutput:
         cameras = self.cameras(stage, obs.points.shape[0], obs.points.device, center)
-        images = self.render(obs, cameras)
+        images = self.render(obs, cameras, stage)
         tokens, logits = self.stages[stage](images, obs.proprio, obs.lang)
         return StageOutput(cameras, tokens, logits)
 
     def locate(self, stage: int, out: StageOutput, center: torch.Tensor | None) -> torch.Tensor:
         probs = out.logits.float().flatten(-2).softmax(-1).view_as(out.logits)
         box_center, half = self.box(stage, center, probs)
-        return heatmaps_to_point(probs, out.cameras, box_center, half)
+        return heatmaps_to_point(probs, self.cfg.views, box_center, half)
 
     def action_features(self, out: StageOutput, location: torch.Tensor) -> torch.Tensor:
         uv, _ = project(location[:, None, :].float(), out.cameras)        # [B, V, 1, 2]

@@ -31,14 +31,16 @@ def render_scene(
     num_points: Tensor | None = None,
     splat_radius: float = DEFAULT_SPLAT_RADIUS,
     backend: str = "warp",
+    reach_px: int | None = None,
 ) -> Rendered:
     """One render of features = (xyz, rgb): Rendered.features[..., :3] is xyz, [..., 3:] rgb."""
     if rgb.shape != points.shape or not rgb.is_floating_point():
         raise ValueError(
-            f"rgb must be float in [0, 1], [B, N, 3] like points {tuple(points.shape)}, got {tuple(rgb.shape)} {rgb.dtype}"
+            f"rgb must be float in [0, 1], [B, N, 3] like points {tuple(points.shape)}, "
+            f"got {tuple(rgb.shape)} {rgb.dtype}"
         )
     features = torch.cat([points, rgb.to(points.dtype)], -1)
-    return render(points, features, cameras, image_size, num_points, splat_radius, backend)
+    return render(points, features, cameras, image_size, num_points, splat_radius, backend, reach_px=reach_px)
 
 
 def channels_from_render(rendered: Rendered, cameras: Cameras) -> Tensor:
@@ -81,7 +83,8 @@ def network_images(
     num_points: Tensor | None = None,
     splat_radius: float = DEFAULT_SPLAT_RADIUS,
     backend: str = "warp",
+    reach_px: int | None = None,
 ) -> Tensor:
     """float32 [B, V, NUM_CHANNELS, H, W]: what the network sees (channel layout above)."""
-    rendered = render_scene(points, rgb, cameras, image_size, num_points, splat_radius, backend)
+    rendered = render_scene(points, rgb, cameras, image_size, num_points, splat_radius, backend, reach_px)
     return channels_from_render(rendered, cameras)

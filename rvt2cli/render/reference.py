@@ -11,7 +11,10 @@ Three steps (paper, "Point-Renderer"):
    depend on any processing order.
 3. gather: unpack each key into the point index (features) and the quantised depth.
 
-Tensor ops only (no Python loop over points or pixels), so it can be traced or exported.
+Tensor ops only (no Python loop over points or pixels), so it can be traced or exported: keys are
+packed with multiplication and unpacked with floor division and remainder (the same bits as shifts
+and masks for these non-negative keys; ONNX shifts only unsigned integers), and for export the
+splatting window can be given statically (`reach_px`) instead of being read off the cameras.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from .cameras import FAR, FX, NEAR, ORTHO, camera_coordinates, pixel_coordinates
 EMPTY_KEY = 2**63 - 1  # a pixel no point reached; larger than any key
 INDEX_BITS = 32
 INDEX_MASK = 2**INDEX_BITS - 1
+INDEX_RANGE = 2**INDEX_BITS  # key = level * INDEX_RANGE + index
 # q = floor((z - near) / (far - near) * 2^31), clamped to 2^31 - 1. The step is (far - near) / 2^31:
 # 2.3e-10 cube units at 4x zoom (far - near = 0.5), far below a millimetre for any real workspace
 # (the float32 depth computed before quantising, ~6e-8 relative, is the actual limit).
@@ -42,11 +46,12 @@ def render_reference(
     num_points: Tensor | None = None,
     splat_radius: float = 0.0,
     max_splat_px: int = 8,
+    reach_px: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Render (validated) clouds; returns features [B, V, H, W, C], depth [B, V, H, W], index [B, V, H, W]."""
     keys = zbuffer(points, params, height, width, num_points)
     if splat_radius > 0:
-        keys = splat(keys, params, splat_radius, max_splat_px)
+        keys = splat(keys, params, splat_radius, max_splat_px, reach_px)
     return gather(keys, features, params)
 
 
@@ -54,7 +59,7 @@ def point_keys(
     points: Tensor, params: Tensor, height: int, width: int, num_points: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
     """Per (view, point): the linear pixel index and the key; EMPTY_KEY (at pixel 0) where not visible."""
-    batch, n = points.shape[:2]
+    n = points.shape[1]
     x, y, z = camera_coordinates(points, params)
     u, v = pixel_coordinates(x, y, z, params)
     near, far = params[..., NEAR, None], params[..., FAR, None]
@@ -70,7 +75,7 @@ def point_keys(
     row = torch.where(visible, v.floor(), torch.zeros_like(v)).long()
     col = torch.where(visible, u.floor(), torch.zeros_like(u)).long()
     level = torch.where(visible, ((z - near) / (far - near) * DEPTH_SCALE).floor(), torch.zeros_like(z))
-    key = (level.long().clamp(0, MAX_DEPTH_LEVEL) << INDEX_BITS) | index
+    key = level.long().clamp(0, MAX_DEPTH_LEVEL) * INDEX_RANGE + index
     return row * width + col, torch.where(visible, key, EMPTY_KEY)
 
 
@@ -88,7 +93,7 @@ def zbuffer(
 def key_depth(keys: Tensor, params: Tensor) -> Tensor:
     """Depth [B, V, H, W] dequantised from keys (meaningless where a key is EMPTY_KEY)."""
     near, far = params[..., NEAR, None, None], params[..., FAR, None, None]
-    return near + (far - near) * ((keys >> INDEX_BITS).float() / DEPTH_SCALE)
+    return near + (far - near) * ((keys // INDEX_RANGE).float() / DEPTH_SCALE)
 
 
 def splat_reach(params: Tensor, splat_radius: float, max_splat_px: int) -> Tensor:
@@ -99,10 +104,14 @@ def splat_reach(params: Tensor, splat_radius: float, max_splat_px: int) -> Tenso
     return bound.clamp(max=float(max_splat_px))
 
 
-def splat(keys: Tensor, params: Tensor, splat_radius: float, max_splat_px: int) -> Tensor:
-    """Screen-space splatting of a z-buffer [B, V, H, W] (see the module docstring)."""
+def splat(keys: Tensor, params: Tensor, splat_radius: float, max_splat_px: int, reach_px: int | None = None) -> Tensor:
+    """Screen-space splatting of a z-buffer [B, V, H, W] (see the module docstring). The window's
+    half-width is `reach_px` if given (any value >= the largest disc gives the same result), else
+    the largest disc of the cameras (which reads a value off the device)."""
     batch, views, height, width = keys.shape
-    reach = math.ceil(splat_reach(params, splat_radius, max_splat_px).max().item())
+    if keys.numel() == 0:
+        return keys
+    reach = reach_px if reach_px is not None else math.ceil(splat_reach(params, splat_radius, max_splat_px).max().item())
     radius_px = torch.tensor(splat_radius, dtype=torch.float32, device=keys.device) * params[..., FX, None, None]
     ortho = params[..., ORTHO, None, None] > 0.5
     disc = torch.where(ortho, radius_px, radius_px / key_depth(keys, params)).clamp(max=float(max_splat_px))
@@ -128,10 +137,10 @@ def gather(keys: Tensor, features: Tensor, params: Tensor) -> tuple[Tensor, Tens
     batch, views, height, width = keys.shape
     n, channels = features.shape[1:]
     hit = keys != EMPTY_KEY
-    index = torch.where(hit, keys & INDEX_MASK, -1)
+    index = torch.where(hit, keys % INDEX_RANGE, -1)
     depth = torch.where(hit, key_depth(keys, params), 0.0)
     # Background pixels gather an appended row of zeros.
     rows = torch.cat([features, features.new_zeros(batch, 1, channels)], 1)
-    lookup = torch.where(hit, index, n).view(batch, -1, 1).expand(-1, -1, channels)
+    lookup = torch.where(hit, index, n).view(batch, views * height * width, 1).expand(-1, -1, channels)
     gathered = rows.gather(1, lookup).view(batch, views, height, width, channels)
     return gathered, depth, index

@@ -38,6 +38,7 @@ def render(
     splat_radius: float = 0.0,
     backend: str = "warp",
     max_splat_px: int = 8,
+    reach_px: int | None = None,
 ) -> Rendered:
     """Render B point clouds into the V views of `cameras`.
 
@@ -46,6 +47,8 @@ def render(
     non-finite coordinate are dropped. splat_radius (world units, 0 = off) draws each point as a
     camera-facing disc; discs wider than max_splat_px pixels are shrunk to that radius.
     backend "warp" runs the kernels, "torch" the reference; both give identical index images.
+    reach_px (torch backend): a static splatting window half-width, at least the largest disc, so
+    the reference reads nothing off the device (tracing, export, CUDA graphs).
     """
     height, width = _image_shape(image_size)
     _check_inputs(points, features, cameras, num_points)
@@ -53,15 +56,16 @@ def render(
         raise ValueError(f"splat_radius must be finite and >= 0, got {splat_radius}")
     if not isinstance(max_splat_px, int) or max_splat_px < 0:
         raise ValueError(f"max_splat_px must be an int >= 0, got {max_splat_px!r}")
+    extra = {}
     if backend == "warp":
         from .warp_renderer import render_warp as backend_render  # imports warp only when used
     elif backend == "torch":
-        backend_render = render_reference
+        backend_render, extra = render_reference, {"reach_px": reach_px}
     else:
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
     images = backend_render(
         points.contiguous(), features.contiguous(), cameras.params.contiguous(), height, width,
-        None if num_points is None else num_points.contiguous(), float(splat_radius), max_splat_px,
+        None if num_points is None else num_points.contiguous(), float(splat_radius), max_splat_px, **extra,
     )
     return Rendered(*images)
 
@@ -79,17 +83,22 @@ def _check_inputs(points: Tensor, features: Tensor, cameras: Cameras, num_points
     if points.dtype != torch.float32 or points.ndim != 3 or points.shape[-1] != 3:
         raise ValueError(f"points must be float32 [B, N, 3], got {tuple(points.shape)} {points.dtype}")
     batch, n = points.shape[:2]
-    if features.dtype != torch.float32 or features.ndim != 3 or features.shape[:2] != (batch, n) or features.shape[2] < 1:
+    wrong_features = features.dtype != torch.float32 or features.ndim != 3 or features.shape[:2] != (batch, n)
+    if wrong_features or features.shape[2] == 0:
         raise ValueError(
             f"features must be float32 [B, N, C>=1] matching points {tuple(points.shape)}, "
             f"got {tuple(features.shape)} {features.dtype}"
         )
     if cameras.batch_size != batch:
-        raise ValueError(f"cameras {tuple(cameras.params.shape)} must have the batch size of points {tuple(points.shape)}")
+        raise ValueError(
+            f"cameras {tuple(cameras.params.shape)} must have the batch size of points {tuple(points.shape)}"
+        )
     if n > MAX_POINTS:
         raise ValueError(f"at most {MAX_POINTS} points per cloud, got {n}")
     if num_points is not None and (num_points.dtype != torch.int64 or num_points.shape != (batch,)):
         raise ValueError(f"num_points must be int64 [B={batch}], got {tuple(num_points.shape)} {num_points.dtype}")
     devices = {t.device for t in (points, features, cameras.params, num_points) if t is not None}
     if len(devices) > 1:
-        raise ValueError(f"points, features, cameras and num_points must be on one device, got {sorted(map(str, devices))}")
+        raise ValueError(
+            f"points, features, cameras and num_points must be on one device, got {sorted(map(str, devices))}"
+        )

@@ -3,12 +3,15 @@
 Same contract and same arithmetic as `reference.py` (read it first); here it costs one fill and two
 launches, with no host synchronisation:
 
-    keys.fill(EMPTY)          torch, on the current stream
-    _zbuffer_kernel           one thread per point: project into every view, atomic_min its key
-    _resolve_kernel           one thread per pixel: splat (optional), unpack the key, gather
+    keys.fill(EMPTY)    the z-buffer, int64 per pixel
+    _zbuffer_kernel     per point: project into every view, atomic_min its key into its pixel
+    _resolve_kernel     per pixel: splat (optional), unpack the key, gather features and depth
 
-On CUDA both kernels go to torch's current stream, so a render can be captured in a CUDA graph
-(after a first call has loaded the kernels).
+On CUDA a thread handles one point or one pixel, and both kernels go to torch's current stream, so
+a render can be captured in a CUDA graph (after a first call has loaded the kernels). warp runs a
+CPU launch on one thread, thread after thread, so there a thread handles 64 points or a whole
+image row (amortising its fixed cost), and the images are split into blocks rendered in parallel
+by torch.get_num_threads() Python threads (warp releases the GIL while a kernel runs).
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from .cameras import CX, CY, FAR, FX, FY, NEAR, ORTHO, TRANSLATION
 from .reference import DEPTH_SCALE, EMPTY_KEY, INDEX_BITS, INDEX_MASK, MAX_DEPTH_LEVEL
 
 # No FMA contraction: the kernels then round exactly like the torch reference, pixel for pixel.
-wp.set_module_options({"fuse_fp": False, "enable_backward": False})
+_MODULE_OPTIONS = {"fuse_fp": False, "enable_backward": False}
+wp.set_module_options(_MODULE_OPTIONS)
 
 _EMPTY = wp.constant(wp.int64(EMPTY_KEY))
 _INDEX_BITS = wp.constant(wp.int64(INDEX_BITS))
@@ -93,8 +97,7 @@ def _draw_point(
 @wp.kernel
 def _zbuffer_kernel(
     points: wp.array3d(dtype=float),  # [B, N, 3]
-    num_points: wp.array(dtype=wp.int64),  # [B], read when use_num_points != 0
-    use_num_points: int,
+    num_points: wp.array(dtype=wp.int64),  # [B]
     cameras: wp.array3d(dtype=float),  # [B, V, 19]
     height: int,
     width: int,
@@ -102,10 +105,8 @@ def _zbuffer_kernel(
     keys: wp.array(dtype=wp.int64),  # [B * V * H * W], filled with EMPTY
 ):
     b, chunk = wp.tid()
-    end = wp.min((chunk + 1) * span, points.shape[1])
-    if use_num_points != 0:
-        end = int(wp.min(wp.int64(end), num_points[b]))
-    for n in range(chunk * span, end):
+    count = int(wp.min(num_points[b], wp.int64(points.shape[1])))  # later points are ignored
+    for n in range(chunk * span, wp.min((chunk + 1) * span, count)):
         _draw_point(points, cameras, b, n, height, width, keys)
 
 
@@ -127,75 +128,95 @@ def _splat_key(
 ) -> wp.int64:
     """The smallest key among pixel (row, col) and the neighbours whose disc covers its centre.
 
-    Only neighbours within `reach` (the largest disc of the view) are visited: for each row offset
-    dy the columns |dx| <= sqrt(reach^2 - dy^2), a superset of the covering ones (sqrt rounds
-    monotonically), each then tested exactly as in the reference."""
+    Visits the offsets with dy^2 + dx^2 <= reach^2, reach being the largest disc of the view (for
+    each dy the integer square root of reach^2 - dy^2, a difference float32 holds exactly). An
+    orthographic view's discs all have radius `reach`, so there that set is exactly the covering
+    neighbours and a plain min does (EMPTY is the largest key); a pinhole disc shrinks with depth
+    and each nearer key is tested as in the reference."""
     best = keys[image_start + row * width + col]
+    reach2 = reach * reach
     steps = int(reach)
     for dy in range(wp.max(-steps, -row), wp.min(steps, height - 1 - row) + 1):
-        half = int(wp.sqrt(wp.max(reach * reach - float(dy * dy), 0.0)))
+        room = reach2 - float(dy * dy)
+        half = int(wp.sqrt(wp.max(room, 0.0)))
+        if float(half * half) > room:  # sqrt rounded up to an integer
+            half = half - 1
         line = image_start + (row + dy) * width
-        for c in range(wp.max(col - half, 0), wp.min(col + half, width - 1) + 1):
-            key = keys[line + c]
-            if key < best:  # only a nearer key can change the minimum
-                disc = radius * fx
-                if not ortho:
-                    disc = radius * fx / _key_depth(key, near, far)
-                disc = wp.min(disc, max_px)
-                dx = c - col
-                if float(dy * dy + dx * dx) <= disc * disc:
-                    best = key
+        first = wp.max(col - half, 0)
+        last = wp.min(col + half, width - 1)
+        if ortho:
+            for c in range(first, last + 1):
+                best = wp.min(best, keys[line + c])
+        else:
+            for c in range(first, last + 1):
+                key = keys[line + c]
+                if key < best:  # only a nearer key can change the minimum
+                    disc = wp.min(radius * fx / _key_depth(key, near, far), max_px)
+                    dx = c - col
+                    if float(dy * dy + dx * dx) <= disc * disc:
+                        best = key
     return best
 
 
-@wp.kernel
-def _resolve_kernel(
-    keys: wp.array(dtype=wp.int64),  # [B * V * H * W]
-    cameras: wp.array3d(dtype=float),  # [B, V, 19]
-    features: wp.array3d(dtype=float),  # [B, N, C]
-    height: int,
-    width: int,
-    span: int,  # pixels per thread: 1 or a whole row (spans never cross a row)
-    splat_radius: float,
-    max_splat_px: float,
-    out_features: wp.array2d(dtype=float),  # [B * V * H * W, C]
-    out_depth: wp.array(dtype=float),  # [B * V * H * W]
-    out_index: wp.array(dtype=wp.int64),  # [B * V * H * W]
-):
-    first = wp.tid() * span
-    image = first / (height * width)
-    b = image / cameras.shape[1]
-    v = image % cameras.shape[1]
-    row = (first / width) % height
-    col0 = first % width
-    near = cameras[b, v, _NEAR]
-    far = cameras[b, v, _FAR]
-    fx = cameras[b, v, _FX]
-    ortho = cameras[b, v, _ORTHO] > 0.5
-    reach = max_splat_px  # the largest disc of this view (pinhole: at the near plane), capped
-    if ortho:
-        reach = wp.min(splat_radius * fx, max_splat_px)
-    elif near > 0.0:
-        reach = wp.min(splat_radius * fx / near, max_splat_px)
-    for col in range(col0, col0 + span):
-        pixel = first + col - col0
-        key = keys[pixel]
-        if splat_radius > 0.0:
-            key = _splat_key(
-                keys, image * height * width, height, width, row, col,
-                splat_radius, fx, near, far, ortho, reach, max_splat_px,
-            )
-        if key == _EMPTY:
-            for c in range(features.shape[2]):
-                out_features[pixel, c] = 0.0
-            out_depth[pixel] = 0.0
-            out_index[pixel] = wp.int64(-1)
-        else:
-            n = int(key & _INDEX_MASK)
-            for c in range(features.shape[2]):
-                out_features[pixel, c] = features[b, n, c]
-            out_depth[pixel] = _key_depth(key, near, far)
-            out_index[pixel] = key & _INDEX_MASK
+@functools.cache
+def _feature_row(channels: int) -> type:
+    return wp.types.vector(length=channels, dtype=float)
+
+
+@functools.cache
+def _resolve_kernel(channels: int) -> wp.Kernel:
+    """The per-pixel kernel for feature rows of `channels` floats. Each row moves as one vector, a
+    single memory operation instead of `channels` (on CUDA the kernel takes ~40% less time), so the
+    kernel is built, and compiled once, per channel count."""
+    feature_row = _feature_row(channels)
+
+    @wp.kernel(module="unique", module_options=_MODULE_OPTIONS)
+    def resolve(
+        keys: wp.array(dtype=wp.int64),  # [B * V * H * W]
+        cameras: wp.array3d(dtype=float),  # [B, V, 19]
+        features: wp.array2d(dtype=feature_row),  # [B, N]
+        height: int,
+        width: int,
+        span: int,  # pixels per thread: 1 or a whole row (spans never cross a row)
+        splat_radius: float,
+        max_splat_px: float,
+        out_features: wp.array(dtype=feature_row),  # [B * V * H * W]
+        out_depth: wp.array(dtype=float),  # [B * V * H * W]
+        out_index: wp.array(dtype=wp.int64),  # [B * V * H * W]
+    ):
+        first = wp.tid() * span
+        image = first / (height * width)
+        b = image / cameras.shape[1]
+        v = image % cameras.shape[1]
+        row = (first / width) % height
+        col0 = first % width
+        near = cameras[b, v, _NEAR]
+        far = cameras[b, v, _FAR]
+        fx = cameras[b, v, _FX]
+        ortho = cameras[b, v, _ORTHO] > 0.5
+        reach = max_splat_px  # the largest disc of this view (pinhole: at the near plane), capped
+        if ortho:
+            reach = wp.min(splat_radius * fx, max_splat_px)
+        elif near > 0.0:
+            reach = wp.min(splat_radius * fx / near, max_splat_px)
+        for col in range(col0, col0 + span):
+            pixel = first + col - col0
+            key = keys[pixel]
+            if splat_radius > 0.0:
+                key = _splat_key(
+                    keys, image * height * width, height, width, row, col,
+                    splat_radius, fx, near, far, ortho, reach, max_splat_px,
+                )
+            if key == _EMPTY:
+                out_features[pixel] = feature_row()
+                out_depth[pixel] = 0.0
+                out_index[pixel] = wp.int64(-1)
+            else:
+                out_features[pixel] = features[b, int(key & _INDEX_MASK)]
+                out_depth[pixel] = _key_depth(key, near, far)
+                out_index[pixel] = key & _INDEX_MASK
+
+    return resolve
 
 
 def render_warp(
@@ -210,57 +231,85 @@ def render_warp(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Render (validated, contiguous) clouds; same contract as `reference.render_reference`."""
     device = points.device
-    _initialise(device)
     batch, n, channels = features.shape
-    views = params.shape[1]
-    images = (batch, views, height, width)
-    keys = _keys_buffer(images, device)
+    resolve = _loaded_kernels(device, channels)
+    images = (batch, params.shape[1], height, width)
     out_features = torch.empty((*images, channels), dtype=torch.float32, device=device)
     out_depth = torch.empty(images, dtype=torch.float32, device=device)
     out_index = torch.empty(images, dtype=torch.int64, device=device)
-
-    def run(part: tuple[slice, slice], **place) -> None:
-        """Both kernels over the scenes and views of `part` (a contiguous block of images)."""
-        scenes, view_range = part
-        params_part = params[scenes, view_range]
-        point_span, pixel_span = (1, 1) if device.type == "cuda" else (64, width)
-        block = (params_part.shape[0], params_part.shape[1], height, width)
-        keys_part = keys[scenes, view_range]
-        if n > 0:
-            counts = None if num_points is None else _view(num_points[scenes])
-            wp.launch(
-                _zbuffer_kernel,
-                dim=(block[0], -(-n // point_span)),
-                inputs=[
-                    _view(points[scenes]), counts, int(num_points is not None), _view(params_part),
-                    height, width, point_span, _view(keys_part.view(-1)),
-                ],
-                **place,
-            )
-        wp.launch(
-            _resolve_kernel,
-            dim=math.prod(block) // pixel_span,
-            inputs=[
-                _view(keys_part.view(-1)), _view(params_part), _view(features[scenes]), height, width,
-                pixel_span, splat_radius, float(max_splat_px),
-                _view(out_features[scenes, view_range].view(-1, channels)),
-                _view(out_depth[scenes, view_range].view(-1)),
-                _view(out_index[scenes, view_range].view(-1)),
-            ],
-            **place,
-        )
+    if batch == 0:
+        return out_features, out_depth, out_index
+    keys = _keys_buffer(images, device)
+    if num_points is None:
+        num_points = torch.full((batch,), n, dtype=torch.int64, device=device)
+    options = dict(resolve=resolve, splat_radius=splat_radius, max_splat_px=max_splat_px)
 
     if device.type == "cuda":
-        run((slice(None), slice(None)), stream=_warp_stream(torch.cuda.current_stream(device)))
-    else:
-        parts = _cpu_parts(batch, views, torch.get_num_threads())
-        list(_cpu_pool(len(parts)).map(functools.partial(run, device="cpu"), parts))
+        _launch(
+            points, num_points, params, features, keys, out_features, out_depth, out_index, **options,
+            point_span=1, pixel_span=1, place=dict(stream=_warp_stream(torch.cuda.current_stream(device))),
+        )
+        return out_features, out_depth, out_index
+
+    def launch_part(part: tuple[slice, slice]) -> None:
+        scenes, views = part
+        _launch(
+            points[scenes], num_points[scenes], params[scenes, views], features[scenes], keys[scenes, views],
+            out_features[scenes, views], out_depth[scenes, views], out_index[scenes, views], **options,
+            point_span=64, pixel_span=width, place=dict(device="cpu"),
+        )
+
+    parts = _cpu_parts(batch, images[1], torch.get_num_threads())
+    list(_cpu_pool(len(parts)).map(launch_part, parts))
     return out_features, out_depth, out_index
 
 
-def _view(tensor: Tensor):
-    """A zero-copy warp array descriptor of a contiguous tensor (the lightweight ctype form)."""
-    return wp.from_torch(tensor, return_ctype=True)
+def _launch(
+    points: Tensor,
+    num_points: Tensor,
+    params: Tensor,
+    features: Tensor,
+    keys: Tensor,
+    out_features: Tensor,
+    out_depth: Tensor,
+    out_index: Tensor,
+    resolve: wp.Kernel,
+    splat_radius: float,
+    max_splat_px: int,
+    point_span: int,
+    pixel_span: int,
+    place: dict,
+) -> None:
+    """Both kernels over a contiguous block of images [B, V, H, W]; `place` is wp.launch's device or
+    stream."""
+    batch, _, height, width = keys.shape
+    n, channels = features.shape[1:]
+    flat_keys = _view(keys.view(-1))
+    cameras = _view(params)
+    if n > 0:
+        wp.launch(
+            _zbuffer_kernel,
+            dim=(batch, -(-n // point_span)),
+            inputs=[_view(points), _view(num_points), cameras, height, width, point_span, flat_keys],
+            **place,
+        )
+    row = _feature_row(channels)
+    wp.launch(
+        resolve,
+        dim=keys.numel() // pixel_span,
+        inputs=[
+            flat_keys, cameras, _view(features, row), height, width, pixel_span, splat_radius,
+            float(max_splat_px), _view(out_features.view(-1, channels), row), _view(out_depth.view(-1)),
+            _view(out_index.view(-1)),
+        ],
+        **place,
+    )
+
+
+def _view(tensor: Tensor, dtype: type | None = None):
+    """A zero-copy warp array descriptor of a contiguous tensor (the lightweight ctype form); with a
+    vector dtype the last dimension becomes the vector."""
+    return wp.from_torch(tensor, dtype=dtype, return_ctype=True)
 
 
 def _keys_buffer(shape: tuple[int, ...], device: torch.device) -> Tensor:
@@ -304,20 +353,18 @@ def _warp_stream(stream: torch.cuda.Stream) -> wp.Stream:
     return wp.stream_from_torch(stream)
 
 
-_loaded: set[str] = set()
-
-
-def _initialise(device: torch.device) -> None:
-    """Initialise warp silently and load the kernels on `device` (compiled on first use, then cached on
-    disk), before any CPU thread or CUDA graph capture needs them."""
-    key = str(device)
-    if key in _loaded:
-        return
+@functools.cache
+def _loaded_kernels(device: torch.device, channels: int) -> wp.Kernel:
+    """Initialise warp (silently) and load both kernel modules on `device`, compiling them on first
+    use (warp caches the binaries on disk), before CPU threads or a CUDA graph capture need them.
+    Returns the resolve kernel for `channels`."""
     wp.config.log_level = wp.LOG_ERROR  # no "module loaded" chatter
     with contextlib.nullcontext() if torch.cuda.is_available() else _native_stderr_silenced():
         wp.init()
-    wp.load_module(sys.modules[__name__], device=wp.device_from_torch(device))
-    _loaded.add(key)
+    resolve = _resolve_kernel(channels)
+    for module in (_zbuffer_kernel.module, resolve.module):
+        wp.load_module(module, device=wp.device_from_torch(device))
+    return resolve
 
 
 @contextlib.contextmanager

@@ -1,0 +1,57 @@
+"""The whole policy step as one module with fixed-shape tensor inputs, so it exports.
+
+inputs:  xyz [1, N, 3] world metres (padded), rgb [1, N, 3] in [0, 1], num_points [1] (valid points),
+         proprio [1, 4], lang [1, L, 384] (instruction token embeddings), scene_bounds [6]
+outputs: position [1, 3] world metres, quaternion [1, 4] (x y z w), gripper_open [1] (1/0),
+         ignore_collisions [1] (1/0), rotation_bins [1, 3]
+
+Rendering (the pure-torch reference renderer), both stages and the 3D argmax are inside.
+"""
+
+import math
+
+import torch
+from torch import nn
+
+from rvt2cli.model.policy import Observation, RVT2Policy
+
+
+def euler_bins_to_quaternion(bins: torch.Tensor, num_bins: int) -> torch.Tensor:
+    """[B, 3] xyz Euler bins (extrinsic, bin centres) -> [B, 4] quaternions x y z w (torch, exportable)."""
+    angles = -math.pi + (bins.to(torch.float32) + 0.5) * (2 * math.pi / num_bins)
+    half = angles / 2
+    c, s = torch.cos(half), torch.sin(half)
+    cx, cy, cz, sx, sy, sz = c[:, 0], c[:, 1], c[:, 2], s[:, 0], s[:, 1], s[:, 2]
+    # q = q_z * q_y * q_x (extrinsic x, then y, then z)
+    w = cz * cy * cx + sz * sy * sx
+    x = cz * cy * sx - sz * sy * cx
+    y = cz * sy * cx + sz * cy * sx
+    z = sz * cy * cx - cz * sy * sx
+    return torch.stack([x, y, z, w], dim=-1)
+
+
+class DeployablePolicy(nn.Module):
+    def __init__(self, policy: RVT2Policy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, xyz, rgb, num_points, proprio, lang, scene_bounds):
+        lo, hi = scene_bounds[:3], scene_bounds[3:]
+        center = (lo + hi) / 2
+        half = ((hi - lo) / 2).max()
+        obs = Observation(points=(xyz - center) / half, rgb=rgb, num_points=num_points, proprio=proprio, lang=lang)
+        pred = self.policy.predict(obs)
+        position = pred.position * half + center
+        quaternion = euler_bins_to_quaternion(pred.rot_bins, self.policy.cfg.rotation_bins)
+        return position, quaternion, pred.gripper_open.float(), pred.ignore_collisions.float(), pred.rot_bins
+
+
+INPUT_NAMES = ["xyz", "rgb", "num_points", "proprio", "lang", "scene_bounds"]
+OUTPUT_NAMES = ["position", "quaternion", "gripper_open", "ignore_collisions", "rotation_bins"]
+
+
+def example_inputs(cfg, max_points: int, generator: torch.Generator | None = None) -> tuple:
+    g = generator or torch.Generator().manual_seed(0)
+    return (torch.rand(1, max_points, 3, generator=g) * 0.6 - 0.3, torch.rand(1, max_points, 3, generator=g),
+            torch.tensor([max_points]), torch.tensor([[1.0, 0.04, 0.04, 1.0]]), torch.randn(1, cfg.lang_tokens, 384, generator=g),
+            torch.tensor([-0.4, -0.4, -0.05, 0.4, 0.4, 0.75]))
