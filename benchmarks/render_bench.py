@@ -40,30 +40,32 @@ def main() -> None:
         parser.error("--device cuda: no CUDA device is available")
 
     device = torch.device(args.device)
+    load_before = os.getloadavg()[0]
     rows = []
     for batch, n in QUICK_CASES if args.quick else FULL_CASES:
         points, features = cloud(batch, n, device)
         cameras = cube_rig(RVT2_VIEWS, IMAGE_SIZE, batch_size=batch, device=device)
         for mode, radius in MODES.items():
-            times = {
-                backend: median_ms(
-                    lambda backend=backend: render(points, features, cameras, IMAGE_SIZE, splat_radius=radius, backend=backend),
+            def time_backend(backend: str) -> float:
+                return median_ms(
+                    lambda: render(points, features, cameras, IMAGE_SIZE, splat_radius=radius, backend=backend),
                     device,
-                    quick=args.quick,
+                    args.quick,
                 )
-                for backend in ("warp", "torch")
-            }
-            row = dict(batch=batch, points=n, mode=mode, warp_ms=times["warp"], torch_ms=times["torch"])
-            row["speedup"] = row["torch_ms"] / row["warp_ms"]
-            rows.append(row)
-            print(f"  {batch:>3} x {n:>7,} {mode:<15} warp {row['warp_ms']:9.3f} ms   torch {row['torch_ms']:9.3f} ms", flush=True)
+
+            warp_ms, torch_ms = time_backend("warp"), time_backend("torch")
+            rows.append(
+                dict(batch=batch, points=n, mode=mode, warp_ms=warp_ms, torch_ms=torch_ms, speedup=torch_ms / warp_ms)
+            )
+            print(f"  {batch:>3} x {n:>7,} {mode:<15} warp {warp_ms:9.3f} ms   torch {torch_ms:9.3f} ms", flush=True)
 
     machine = describe_machine(device)
+    machine["load_average_1min"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]  # before, after
     print()
     print(markdown_table(rows, machine))
     if args.json:
-        args.json.write_text(json.dumps(dict(machine=machine, image_size=IMAGE_SIZE, views=list(RVT2_VIEWS),
-                                             splat_pixels=SPLAT_PIXELS, results=rows), indent=2) + "\n")
+        report = dict(machine=machine, image_size=IMAGE_SIZE, views=RVT2_VIEWS, splat_pixels=SPLAT_PIXELS, results=rows)
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
 
 
 def cloud(batch: int, n: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -130,15 +132,16 @@ def cpu_model() -> str:
 def markdown_table(rows: list[dict], machine: dict) -> str:
     where = machine["gpu"] or f"{machine['cpu']}, {machine['cpu_cores']} cores"
     lines = [
-        f"{len(RVT2_VIEWS)} views at {IMAGE_SIZE}x{IMAGE_SIZE}, {where}; torch {machine['torch']}, warp {machine['warp']}",
+        f"{len(RVT2_VIEWS)} views at {IMAGE_SIZE}x{IMAGE_SIZE}, {where}; "
+        f"torch {machine['torch']}, warp {machine['warp']}",
         "",
         "| batch | points/cloud | mode | warp (ms) | torch reference (ms) | speedup |",
         "|---:|---:|---|---:|---:|---:|",
     ]
     for r in rows:
-        lines.append(
-            f"| {r['batch']} | {r['points']:,} | {r['mode']} | {r['warp_ms']:.3f} | {r['torch_ms']:.3f} | {r['speedup']:.1f}x |"
-        )
+        cells = [r["batch"], f"{r['points']:,}", r["mode"], f"{r['warp_ms']:.3f}", f"{r['torch_ms']:.3f}"]
+        cells.append(f"{r['speedup']:.1f}x")
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
     return "\n".join(lines)
 
 

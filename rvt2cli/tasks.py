@@ -32,6 +32,7 @@ class Task:
     variables: dict = field(default_factory=dict)
     show_hidden: tuple[str, ...] = ()  # objects ManiSkill hides from cameras that the policy must see
     planner_speed: float = 0.9         # fraction of the Panda's joint velocity/acceleration limits (as the expert)
+    gripper_close: float = -1.0        # the gripper command that closes it (as the expert; some grip softer)
     env_kwargs: dict = field(default_factory=dict)
 
     def instruction(self, seed: int) -> tuple[str, int]:

@@ -3,7 +3,9 @@
 # Idempotent: does nothing when everything is already installed.
 set -euo pipefail
 
-need_pkgs=(libvulkan1 libusb-1.0-0 libgl1 libegl1 libglib2.0-0 libgomp1 ffmpeg)
+need_pkgs=(libvulkan1 libusb-1.0-0 libgl1 libegl1 libglib2.0-0 libgomp1)
+# A bare Debian python3 cannot make virtualenvs without python3-venv.
+${PYTHON:-python3} -c 'import ensurepip' 2>/dev/null || need_pkgs+=(python3-venv)
 backports_pkgs=(mesa-vulkan-drivers)
 
 missing=()

@@ -164,3 +164,14 @@ def test_loss_decreases_on_a_fixed_batch():
         optimizer.step()
         losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0], losses
+
+
+def test_lamb_step_matches_the_formula():
+    w0, g = torch.tensor([1.0, -2.0, 3.0]), torch.tensor([0.5, 0.1, -0.2])
+    p = torch.nn.Parameter(w0.clone())
+    p.grad = g.clone()
+    Lamb([p], lr=0.1, betas=(0.9, 0.999), eps=1e-6, weight_decay=0.01).step()
+    m_hat, v_hat = (0.1 * g) / 0.1, (0.001 * g * g) / 0.001
+    update = m_hat / (v_hat.sqrt() + 1e-6) + 0.01 * w0
+    expected = w0 - 0.1 * (w0.norm() / update.norm()) * update
+    assert torch.allclose(p.detach(), expected, atol=1e-6)

@@ -104,3 +104,15 @@ def test_list_tasks(cli):
     names = [line.split()[0] for line in r.stdout.splitlines()]
     assert {"insert_peg", "plug_charger", "stack_cube", "pick_cube", "push_cube", "pull_cube",
             "lift_peg_upright", "place_sphere"} <= set(names)
+
+
+@pytest.mark.parametrize("task", ["insert_peg", "plug_charger", "stack_cube", "pick_cube", "push_cube", "pull_cube",
+                                  "lift_peg_upright", "place_sphere", "stack_pyramid"])
+def test_every_task_records_an_episode(task, tmp_path):
+    summary = record(task, 1, tmp_path, seed=0, max_attempts=1,
+                     options=RecordOptions(cameras=("front",), image_size=32, keep_failures=True))
+    result = summary.results[0]
+    assert result.status in ("success", "failed", "planning_failed") and result.path
+    ep = read_episode(result.path)
+    assert ep.meta.task == task and ep.num_frames == result.frames > 10
+    assert len(ep.cloud(0)) > 100

@@ -82,3 +82,28 @@ def test_data_without_keyframes_is_refused(tmp_path, cli):
 def test_cuda_without_gpu_is_a_clear_error(tiny_dataset, tmp_path, cli):
     r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "run", "--config", "small", "--device", "cuda")
     assert_one_line_error(r, "--device cuda", "no CUDA GPU", "--device cpu")
+
+
+def test_non_finite_steps_are_skipped_then_training_stops(tiny_dataset, tmp_path):
+    # an absurd learning rate blows the weights up within a step or two; every later step is non-finite
+    opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "run"), steps=50, max_bad_steps=3,
+                        **{**TINY_TRAIN, "lr": 1e30})
+    with pytest.raises(UserError, match=r"training diverged: 4 steps with a non-finite loss or gradient.*lower --lr"):
+        train(opts, say=lambda *_: None)
+
+
+def test_torchrun_trains_with_two_processes(tiny_dataset, tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    torchrun = Path(sys.executable).parent / "torchrun"
+    out = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([str(torchrun), "--nproc-per-node", "2", "-m", "rvt2cli", "train", "--data", str(tiny_dataset),
+                        "--out", str(out), "--config", "small", "--steps", "3", "--batch-size", "2", "--max-points", "5000",
+                        "--val-episodes", "0", "--no-progress"], capture_output=True, text=True, timeout=600, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "batch 2 x 2" in r.stdout  # two ranks, one log
+    assert load_checkpoint(out).info["step"] == 3

@@ -8,7 +8,9 @@ reach is a failed step, not an error: the arm stays where it is.
 
 Collision avoidance guards the way, not the ends: points within CLEAR_RADIUS of the gripper's start
 and goal are dropped, since grasping and placing end (and start) a finger's width from objects, which
-a point cloud of 5 mm resolution cannot tell from a collision.
+a point cloud of 5 mm resolution cannot tell from a collision. When no collision-free path is found
+at all, the executor plans once more without the cloud (counted as a collision fallback in the
+report): a point cloud cannot tell an object held by its thin edge from an obstacle.
 """
 
 from dataclasses import dataclass
@@ -38,8 +40,9 @@ class StepBudgetExhausted(Exception):
 
 
 class Executor:
-    def __init__(self, env, step_budget: int, speed: float = 0.9):
-        """`speed`: fraction of the Panda's joint velocity and acceleration limits (the task's expert's)."""
+    def __init__(self, env, step_budget: int, speed: float = 0.9, gripper_close: float = -1.0):
+        """`speed`: fraction of the Panda's joint velocity and acceleration limits; `gripper_close`: the
+        command that closes the gripper. Both as the task's expert uses them."""
         import mplib
 
         self.env = env
@@ -58,8 +61,10 @@ class Executor:
         self.planner.joint_acc_limits = np.asarray(self.planner.joint_acc_limits) * speed
         self.time_step = u.control_timestep
         self.gripper = 1.0  # open, as every episode starts
+        self.gripper_close = gripper_close
         self.steps = 0
         self.step_budget = step_budget
+        self.collision_fallbacks = 0
         self.on_step = None  # called after every env.step (videos, rollout recording)
 
     def _qpos(self) -> np.ndarray:
@@ -97,6 +102,8 @@ class Executor:
 
     def _follow(self, result: dict) -> None:
         arm_joints = len(self.planner.move_group_joint_indices)
+        if len(result["position"]) == 0:  # already there (e.g. a gripper keyframe where the arm rests)
+            return
         for qpos in result["position"]:
             self._step(qpos[:arm_joints])
         goal = result["position"][-1][:arm_joints]
@@ -109,10 +116,13 @@ class Executor:
         """Move to the keyframe and set the gripper. False if no plan reaches the pose (nothing moves).
         Raises StepBudgetExhausted when the episode's control steps run out."""
         result = self.plan(action, scene_points)
+        if result is None and scene_points is not None and not action.ignore_collisions:
+            result = self.plan(action, None)
+            self.collision_fallbacks += result is not None
         if result is None:
             return False
         self._follow(result)
-        target_gripper = 1.0 if action.gripper_open else -1.0
+        target_gripper = 1.0 if action.gripper_open else self.gripper_close
         if target_gripper != self.gripper:
             self.gripper = target_gripper
             hold = self._qpos()[:len(self.planner.move_group_joint_indices)]

@@ -40,6 +40,7 @@ def build_report(results: dict[str, dict[str, list[Outcome]]], meta: dict) -> di
             for o in outcomes:
                 report["episodes"].append({"source": source, "task": o.task, "seed": o.seed, "success": o.success,
                                            "failure": o.failure, "keyframes": o.keyframes, "control_steps": o.control_steps,
+                                           "collision_fallbacks": o.collision_fallbacks,
                                            "unreached_keyframes": sum(not s.reached for s in o.steps),
                                            "instruction": o.instruction, "error": o.error})
     sources = list(results)

@@ -37,6 +37,7 @@ class Outcome:
     failure: str | None     # one of FAILURE_KINDS, None on success
     steps: list[Step] = field(default_factory=list)
     control_steps: int = 0
+    collision_fallbacks: int = 0   # keyframes reached only by planning without the scene cloud
     control_hz: float = 20.0
     instruction: str = ""
     error: str | None = None
@@ -73,7 +74,7 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
     env.reset(seed=seed)
-    executor = Executor(env, step_budget or task.max_steps, task.planner_speed)
+    executor = Executor(env, step_budget or task.max_steps, task.planner_speed, task.gripper_close)
     outcome = Outcome(task=task.name, seed=seed, success=False, failure=None, instruction=instruction,
                       control_hz=float(env.unwrapped.control_freq))
     if video_every:
@@ -103,6 +104,7 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
     except StepBudgetExhausted:
         outcome.success = bool(env.unwrapped.evaluate()["success"].item())
     outcome.control_steps = executor.steps
+    outcome.collision_fallbacks = executor.collision_fallbacks
     if not outcome.success:
         if planning_failures:
             outcome.failure = "planning_failure"

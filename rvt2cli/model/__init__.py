@@ -1,1 +1,2 @@
-"""rvt2cli.model"""
+"""The RVT-2 network: multi-view transformer, convex-upsampling heatmaps, two stages, 3D argmax,
+location-conditioned rotation; named configurations and the instruction encoder."""

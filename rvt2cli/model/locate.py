@@ -8,7 +8,7 @@ implementation materialises a 224^3 grid of projection indices (>1 GB). Here eac
 orthographic view sees two of the three axes, so the score splits into three pairwise tables,
     S[i, j, k] = A_xy[i, j] + A_xz[i, k] + A_yz[j, k],
 each the sum of the views that see that pair of axes. The exact argmax is then found slab by slab
-over i, holding O(B * chunk * W^2) numbers instead of O(B * W^3). At stage 2 a voxel is 1/224 of a
+over i, holding O(B * chunk * W^2) numbers instead of O(B * W^3) (at most SLAB_ELEMENTS). At stage 2 a voxel is 1/224 of a
 quarter of the scene cube: 0.9 mm for our 0.8 m workspace, so the argmax is exact to half a voxel.
 """
 
@@ -55,8 +55,11 @@ def _voxel_table(prob: torch.Tensor, axes: ViewAxes) -> tuple[tuple[int, int], t
     return (axes.col_axis, axes.row_axis), table.transpose(1, 2)
 
 
+SLAB_ELEMENTS = 2**26  # scores held at once (256 MB in float32): one slab for a single 224-px sample
+
+
 def heatmaps_to_point(probs: torch.Tensor, views, box_center: torch.Tensor, box_half: float,
-                      chunk: int = 8) -> torch.Tensor:
+                      chunk: int | None = None) -> torch.Tensor:
     """probs [B, V, W, W] (each view sums to 1) of the named axis-aligned orthographic views (a cube or
     zoom rig) -> [B, 3] voxel centre with the best mean score, in cube coordinates; the views cover
     the box `box_center` +- `box_half`."""
@@ -68,6 +71,7 @@ def heatmaps_to_point(probs: torch.Tensor, views, box_center: torch.Tensor, box_
         pair, table = _voxel_table(probs[:, view], axes)
         tables[pair] = tables[pair] + table
     a_xy, a_xz, a_yz = tables[(0, 1)], tables[(0, 2)], tables[(1, 2)]
+    chunk = chunk or max(1, min(w, SLAB_ELEMENTS // (b * w * w)))  # few, large slabs: few kernel launches
     best_score = probs.new_full((b,), -1.0)
     best_index = torch.zeros(b, dtype=torch.long, device=probs.device)
     for start in range(0, w, chunk):

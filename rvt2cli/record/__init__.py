@@ -1,1 +1,1 @@
-"""rvt2cli.record"""
+"""Recording: task scenes in ManiSkill/SAPIEN with the camera rig, scripted experts, episodes written to MCAP."""

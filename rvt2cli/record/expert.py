@@ -1,6 +1,8 @@
 """Run a task's scripted expert and keep the dense robot and simulator state of every frame."""
 
+import contextlib
 import importlib
+import io
 import random
 from dataclasses import dataclass, field
 
@@ -73,7 +75,8 @@ def run_expert(env, expert_spec: str, seed: int, max_frames: int) -> ExpertRun:
     recorder = RecordingWrapper(env, max_frames)
     run = ExpertRun(seed=seed)
     try:
-        result = load_expert(expert_spec)(recorder, seed=seed)
+        with contextlib.redirect_stdout(io.StringIO()):  # the experts print planner failures
+            result = load_expert(expert_spec)(recorder, seed=seed)
         run.status = "planning_failed" if isinstance(result, int) and result == -1 else "failed"
     except EpisodeTooLong:
         run.status = "too_long"

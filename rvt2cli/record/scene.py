@@ -4,6 +4,7 @@ The environment steps with `obs_mode="none"` (no rendering while the expert runs
 rendered only on request with `capture_cameras`, typically after `env.set_state_dict(...)`.
 """
 
+import logging
 import re
 
 import numpy as np
@@ -23,6 +24,8 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
     """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras."""
     use_software_vulkan_if_unset()
     import mani_skill.envs  # noqa: F401 - registers the environments
+
+    logging.getLogger("mani_skill").setLevel(logging.ERROR)  # e.g. "no CUDA, rendering on the CPU": expected here
     from mani_skill.utils.registration import REGISTERED_ENVS
 
     base = REGISTERED_ENVS[task.env_id].cls
@@ -41,9 +44,10 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
 
         @property
         def _default_human_render_camera_configs(self):
-            config = super()._default_human_render_camera_configs
-            config.width = config.height = 256  # videos: software rendering is slow at 512 px
-            return config
+            configs = super()._default_human_render_camera_configs
+            for config in configs if isinstance(configs, (list, tuple)) else [configs]:
+                config.width = config.height = 256  # videos: software rendering is slow at 512 px
+            return configs
 
     RVT2Scene.__name__ = f"RVT2{base.__name__}"
     env = RVT2Scene(obs_mode="none", control_mode="pd_joint_pos", reward_mode="none", sim_backend="cpu",

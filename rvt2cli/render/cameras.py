@@ -15,6 +15,8 @@ near <= z <= far; pixel (row, col) has its centre at (u, v) = (col + 0.5, row + 
 
 from __future__ import annotations
 
+import functools
+
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -134,6 +136,21 @@ class Cameras:
         return Cameras(torch.cat([c.params for c in cameras], 0))
 
 
+@functools.lru_cache(maxsize=64)
+def _rig_template(views: tuple[str, ...], image_size: int, zoom: float, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The parts of a rig that do not depend on its centre: rotations [V, 3, 3] and the 7 trailing
+    parameters [V, 7]. Cached per device, so building a rig copies nothing from the host (a CUDA
+    graph can capture it)."""
+    unknown = [v for v in views if v not in VIEW_AXES]
+    if unknown or not views:
+        raise ValueError(f"unknown views {unknown}; known: {sorted(VIEW_AXES)}")
+    rotation = torch.tensor([VIEW_AXES[v] for v in views], dtype=torch.float32, device=device)
+    half = image_size / 2
+    trailing = torch.tensor([[half * zoom, half * zoom, half, half, 0.0, 2.0 / zoom, 1.0]] * len(views),
+                            dtype=torch.float32, device=device)
+    return rotation, trailing
+
+
 def zoom_rig(
     centers: Tensor,
     zoom: float = 4.0,
@@ -150,20 +167,14 @@ def zoom_rig(
         raise ValueError(f"centers must be [B, 3], got {tuple(centers.shape)}")
     if not isinstance(image_size, int) or image_size <= 0:
         raise ValueError(f"a rig's image_size must be a positive int (square images), got {image_size!r}")
-    unknown = [v for v in views if v not in VIEW_AXES]
-    if unknown or not views:
-        raise ValueError(f"unknown views {unknown}; known: {sorted(VIEW_AXES)}")
-    centers = centers.to(torch.float32)
-    rotation = torch.tensor([VIEW_AXES[v] for v in views], dtype=torch.float32, device=centers.device)  # [V, 3, 3]
+    rotation, trailing = _rig_template(tuple(views), image_size, float(zoom), centers.device)
+    batch, n_views = centers.shape[0], len(views)
     # t = -R (center - direction / zoom) = -R center + (0, 0, 1 / zoom), because R direction = z axis.
-    translation = -torch.einsum("vij,bj->bvi", rotation, centers)
-    translation[..., 2] += 1.0 / zoom
-    half = image_size / 2
-    return Cameras.create(
-        rotation.expand(len(centers), -1, -1, -1),
-        translation,
-        fx=half * zoom, fy=half * zoom, cx=half, cy=half, near=0.0, far=2.0 / zoom, ortho=True,
-    )
+    translation = -torch.einsum("vij,bj->bvi", rotation, centers.to(torch.float32))
+    translation = translation + torch.cat([translation.new_zeros(2), translation.new_full((1,), 1.0 / zoom)])
+    params = torch.cat([rotation.reshape(1, n_views, 9).expand(batch, -1, -1), translation,
+                        trailing.expand(batch, -1, -1)], -1)
+    return Cameras(params.contiguous())
 
 
 def cube_rig(

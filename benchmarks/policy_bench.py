@@ -1,0 +1,168 @@
+"""Policy speed: training throughput and inference latency, rvt2 against the RVT-1-like ablation.
+
+    python -m benchmarks.policy_bench [--device cuda] [--configs rvt2,rvt] [--batch 24] [--points 50000]
+                                      [--json out.json] [--quick]
+
+Training: the whole step (render both stages, forward, all heads and losses, backward, clipping,
+optimizer) at batch --batch in bf16 (CUDA) with 8-bit LAMB when bitsandbytes is installed; samples/s
+and peak GPU memory. Inference: batch 1, the full policy step (cloud in -> both stages rendered ->
+network -> 3D argmax -> pose out), eager and as one CUDA graph; fps as the median over many steps
+after warm-up, and the graph's outputs compared with the eager ones. Synthetic clouds of uniform
+points: speed depends on sizes, not content. --quick runs a tiny CPU configuration (CI).
+"""
+
+import argparse
+import json
+import statistics
+import time
+
+import torch
+
+from benchmarks.machine import describe
+from rvt2cli.model.config import get_config
+from rvt2cli.model.loss import policy_loss
+from rvt2cli.model.policy import Observation, RVT2Policy
+from rvt2cli.train.optim import make_optimizer, warmup_cosine
+
+
+def synthetic_batch(cfg, batch: int, points: int, device, seed: int = 0):
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    obs = Observation(points=(torch.rand(batch, points, 3, generator=g) * 2 - 1), rgb=torch.rand(batch, points, 3, generator=g),
+                      num_points=torch.full((batch,), points), proprio=torch.randn(batch, cfg.proprio_dim, generator=g),
+                      lang=torch.randn(batch, cfg.lang_tokens, cfg.lang_dim, generator=g)).to(device)
+    target = (torch.rand(batch, 3, generator=g) * 1.6 - 0.8).to(device)
+    bins = torch.randint(0, cfg.rotation_bins, (batch, 3), generator=g).to(device)
+    flags = torch.randint(0, 2, (batch, 2), generator=g).to(device)
+    return obs, target, bins, flags
+
+
+def timer(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
+
+
+def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int) -> dict:
+    policy = RVT2Policy(cfg, render_backend="warp").to(device)
+    optimizer, name = make_optimizer(policy.parameters(), 3e-4, 1e-4, device)
+    schedule = warmup_cosine(optimizer, 10, 10_000)
+    obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
+    amp = device.type == "cuda"
+
+    def step():
+        with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=amp):
+            out = policy(obs, target, bins, target)
+        loss = policy_loss(out, target, bins, flags[:, 0], flags[:, 1], cfg.image_size, cfg.heatmap_sigma)["total"]
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 5.0)
+        optimizer.step()
+        schedule.step()
+
+    for _ in range(warmup):
+        step()
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    start = timer(device)
+    for _ in range(steps):
+        step()
+    seconds = (timer(device) - start) / steps
+    result = {"config": cfg.name, "batch": batch, "points": points, "optimizer": name, "bf16": amp,
+              "step_ms": 1000 * seconds, "samples_per_s": batch / seconds,
+              "params_m": sum(p.numel() for p in policy.parameters()) / 1e6}
+    if device.type == "cuda":
+        result["peak_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
+    return result
+
+
+def forward_flops(cfg, device, points: int) -> float:
+    from torch.utils.flop_counter import FlopCounterMode
+
+    policy = RVT2Policy(cfg, render_backend="warp").to(device)
+    obs, target, bins, _ = synthetic_batch(cfg, 1, points, device)
+    counter = FlopCounterMode(display=False)
+    with counter, torch.no_grad():
+        policy(obs, target, bins, target)
+    return float(counter.get_total_flops())
+
+
+def inference_latency(cfg, device, points: int, repeats: int) -> dict:
+    policy = RVT2Policy(cfg, render_backend="warp").to(device).eval()
+    obs, _, _, _ = synthetic_batch(cfg, 1, points, device, seed=1)
+    amp = device.type == "cuda"
+
+    def eager():
+        with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=amp):
+            pred = policy.predict(obs)
+        return pred.position, pred.rot_bins, pred.gripper_open, pred.ignore_collisions
+
+    def median_ms(fn) -> float:
+        for _ in range(3):
+            fn()
+        times = []
+        for _ in range(repeats):
+            start = timer(device)
+            fn()
+            times.append(timer(device) - start)
+        return 1000 * statistics.median(times)
+
+    result = {"config": cfg.name, "points": points, "eager_ms": median_ms(eager)}
+    result["eager_fps"] = 1000 / result["eager_ms"]
+    if device.type == "cuda":
+        from rvt2cli.model.graphed import GraphedPredictor
+
+        graphed = GraphedPredictor(policy, points)
+        result["graph_ms"] = median_ms(lambda: graphed(obs))
+        result["graph_fps"] = 1000 / result["graph_ms"]
+        want, got = eager(), graphed(obs)
+        result["graph_max_position_diff"] = float((want[0].float() - got[0].float()).abs().max())
+        result["graph_same_bins"] = bool(torch.equal(want[1], got[1]))
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--configs", default="rvt2,rvt")
+    parser.add_argument("--batch", type=int, default=24)
+    parser.add_argument("--points", type=int, default=50_000)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--repeats", type=int, default=50)
+    parser.add_argument("--skip-train", action="store_true")
+    parser.add_argument("--json")
+    parser.add_argument("--quick", action="store_true", help="small config, tiny sizes: checks that it runs")
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    configs, batch, points, steps, repeats = args.configs.split(","), args.batch, args.points, args.steps, args.repeats
+    if args.quick:
+        configs, batch, points, steps, repeats = ["small"], 2, 2000, 2, 3
+    results = {"machine": describe(), "device": str(device), "train": [], "inference": [], "flops": {}}
+    for name in configs:
+        cfg = get_config(name)
+        results["flops"][name] = forward_flops(cfg, device, points)
+        if not args.skip_train:
+            results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3))
+            print(json.dumps(results["train"][-1]), flush=True)
+        results["inference"].append(inference_latency(cfg, device, points, repeats))
+        print(json.dumps(results["inference"][-1]), flush=True)
+    print("\n| config | train samples/s | step ms | peak GiB | infer eager fps | infer graph fps | GFLOPs fwd/sample |")
+    print("|---|---|---|---|---|---|---|")
+    for name in configs:
+        t = next((r for r in results["train"] if r["config"] == name), {})
+        i = next(r for r in results["inference"] if r["config"] == name)
+        print(f"| {name} | {t.get('samples_per_s', float('nan')):.1f} | {t.get('step_ms', float('nan')):.1f} | "
+              f"{t.get('peak_memory_gib', float('nan')):.1f} | {i['eager_fps']:.1f} | {i.get('graph_fps', float('nan')):.1f} | "
+              f"{results['flops'][name] / 1e9:.1f} |")
+    if len(configs) == 2 and results["train"]:
+        a, b = (next(r for r in results["train"] if r["config"] == c) for c in configs)
+        ia, ib = (next(r for r in results["inference"] if r["config"] == c) for c in configs)
+        key = "graph_fps" if "graph_fps" in ia else "eager_fps"
+        results["ablation"] = {"train_speedup": a["samples_per_s"] / b["samples_per_s"], "inference_speedup": ia[key] / ib[key]}
+        print(f"\n{configs[0]} vs {configs[1]}: training {results['ablation']['train_speedup']:.2f}x, inference {results['ablation']['inference_speedup']:.2f}x")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
