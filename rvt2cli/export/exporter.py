@@ -11,6 +11,7 @@ parity with the PyTorch policy before it is kept.
 import contextlib
 import io
 import json
+import logging
 import re
 import shutil
 import warnings
@@ -61,6 +62,7 @@ def _input_spec(cfg, max_points: int) -> dict:
 
 
 def _onnx_export(module, inputs, path: Path) -> None:
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)  # e.g. "torchvision is not installed": not needed
     try:
         with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):  # the exporter narrates its steps
             warnings.simplefilter("ignore")

@@ -24,8 +24,9 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
     """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras."""
     use_software_vulkan_if_unset()
     import mani_skill.envs  # noqa: F401 - registers the environments
+    from mani_skill.utils.logging_utils import logger as mani_skill_logger
 
-    logging.getLogger("mani_skill").setLevel(logging.ERROR)  # e.g. "no CUDA, rendering on the CPU": expected here
+    mani_skill_logger.setLevel(logging.ERROR)  # e.g. "no CUDA, rendering on the CPU": expected here
     from mani_skill.utils.registration import REGISTERED_ENVS
 
     base = REGISTERED_ENVS[task.env_id].cls

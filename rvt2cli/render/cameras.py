@@ -136,11 +136,21 @@ class Cameras:
         return Cameras(torch.cat([c.params for c in cameras], 0))
 
 
-@functools.lru_cache(maxsize=64)
+def _tracing() -> bool:
+    """Inside torch.export / torch.compile / TorchScript tracing (tensors made there must not be cached)."""
+    return torch.compiler.is_compiling() or torch._guards.detect_fake_mode() is not None or torch.jit.is_tracing()
+
+
 def _rig_template(views: tuple[str, ...], image_size: int, zoom: float, device: torch.device) -> tuple[Tensor, Tensor]:
     """The parts of a rig that do not depend on its centre: rotations [V, 3, 3] and the 7 trailing
     parameters [V, 7]. Cached per device, so building a rig copies nothing from the host (a CUDA
-    graph can capture it)."""
+    graph can capture it); not cached while tracing, where tensors are placeholders."""
+    if _tracing():
+        return _build_rig_template(views, image_size, zoom, device)
+    return _cached_rig_template(views, image_size, zoom, device)
+
+
+def _build_rig_template(views: tuple[str, ...], image_size: int, zoom: float, device: torch.device) -> tuple[Tensor, Tensor]:
     unknown = [v for v in views if v not in VIEW_AXES]
     if unknown or not views:
         raise ValueError(f"unknown views {unknown}; known: {sorted(VIEW_AXES)}")
@@ -149,6 +159,9 @@ def _rig_template(views: tuple[str, ...], image_size: int, zoom: float, device: 
     trailing = torch.tensor([[half * zoom, half * zoom, half, half, 0.0, 2.0 / zoom, 1.0]] * len(views),
                             dtype=torch.float32, device=device)
     return rotation, trailing
+
+
+_cached_rig_template = functools.lru_cache(maxsize=64)(_build_rig_template)
 
 
 def zoom_rig(
