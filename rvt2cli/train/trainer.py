@@ -185,6 +185,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
             + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
             + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else ""))
 
+    torch.manual_seed(opts.seed)  # here: loading the text encoder above may or may not have drawn random numbers
     policy = RVT2Policy(cfg, render_backend=opts.render_backend).to(device)
     if resume_ckpt:
         policy.load_state_dict(resume_ckpt.weights)
