@@ -7,7 +7,7 @@ oracle measures the executor's ceiling with everything else the same.
 """
 
 import random
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -60,11 +60,9 @@ class KeyframeSource:
 def _collision_points(env, frames, segmentation, bounds) -> np.ndarray:
     """The scene cloud for the planner: without the robot, and without what it holds (it moves with it)."""
     drop = segmentation_ids(env, held_objects(env), include_robot=True)
-    keep = {name: frame for name, frame in frames.items()}
-    for name, frame in keep.items():
-        mask = np.isin(segmentation[name], drop)
-        frame.depth = np.where(mask, 0.0, frame.depth).astype(np.float32)
-    return fuse(keep, bounds).xyz
+    scene = {name: replace(frame, depth=np.where(np.isin(segmentation[name], drop), 0.0, frame.depth).astype(np.float32))
+             for name, frame in frames.items()}
+    return fuse(scene, bounds).xyz
 
 
 def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction: str, keyframe_budget: int = 25,

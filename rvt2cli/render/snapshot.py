@@ -18,6 +18,7 @@ from rvt2cli.model.config import RVT1_VIEWS, RVT2_VIEWS
 from rvt2cli.model.workspace import Workspace
 from rvt2cli.render.cameras import cube_rig, zoom_rig
 from rvt2cli.render.channels import DEFAULT_SPLAT_RADIUS, render_scene
+from rvt2cli.tasks import get_task
 
 
 @dataclass
@@ -146,8 +147,7 @@ def _heatmap_rows(ep, frame, cloud, checkpoint, out: Path, stem: str, written: l
 
     policy, ckpt = load_policy(checkpoint, render_backend=backend)
     source = PolicySource(policy, ckpt)
-    task = type("T", (), {"name": ep.meta.task, "scene_bounds": ep.meta.scene_bounds})
-    source.reset(task, ep.meta.seed, ep.instruction["text"])
+    source.reset(get_task(ep.meta.task), ep.meta.seed, ep.instruction["text"])
     reached = 0 if ep.keyframes is None else sum(k["frame"] <= frame for k in ep.keyframes["keyframes"])
     xyz = torch.from_numpy(cloud.xyz)[None]
     obs = Observation(points=source.workspace.to_cube(xyz), rgb=torch.from_numpy(cloud.rgb)[None].float() / 255.0,
