@@ -42,8 +42,10 @@ def timer(device):
     return time.perf_counter()
 
 
-def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int) -> dict:
+def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int, compile: bool = False) -> dict:
     policy = RVT2Policy(cfg, render_backend="warp").to(device)
+    if compile:
+        policy.compile_network()
     optimizer, name = make_optimizer(policy.parameters(), 3e-4, 1e-4, device)
     schedule = warmup_cosine(optimizer, 10, 10_000)
     obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
@@ -67,7 +69,7 @@ def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: i
     for _ in range(steps):
         step()
     seconds = (timer(device) - start) / steps
-    result = {"config": cfg.name, "batch": batch, "points": points, "optimizer": name, "bf16": amp,
+    result = {"config": cfg.name, "batch": batch, "points": points, "optimizer": name, "bf16": amp, "compiled": compile,
               "step_ms": 1000 * seconds, "samples_per_s": batch / seconds,
               "params_m": sum(p.numel() for p in policy.parameters()) / 1e6}
     if device.type == "cuda":
@@ -86,8 +88,10 @@ def forward_flops(cfg, device, points: int) -> float:
     return float(counter.get_total_flops())
 
 
-def inference_latency(cfg, device, points: int, repeats: int) -> dict:
+def inference_latency(cfg, device, points: int, repeats: int, compile: bool = False) -> dict:
     policy = RVT2Policy(cfg, render_backend="warp").to(device).eval()
+    if compile:
+        policy.compile_network()
     obs, _, _, _ = synthetic_batch(cfg, 1, points, device, seed=1)
     amp = device.type == "cuda"
 
@@ -106,7 +110,7 @@ def inference_latency(cfg, device, points: int, repeats: int) -> dict:
             times.append(timer(device) - start)
         return 1000 * statistics.median(times)
 
-    result = {"config": cfg.name, "points": points, "eager_ms": median_ms(eager)}
+    result = {"config": cfg.name, "points": points, "compiled": compile, "eager_ms": median_ms(eager)}
     result["eager_fps"] = 1000 / result["eager_ms"]
     if device.type == "cuda":
         from rvt2cli.model.graphed import GraphedPredictor
@@ -129,6 +133,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--skip-train", action="store_true")
+    parser.add_argument("--skip-inference", action="store_true")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the network (training and inference)")
     parser.add_argument("--json")
     parser.add_argument("--quick", action="store_true", help="small config, tiny sizes: checks that it runs")
     args = parser.parse_args()
@@ -141,19 +147,20 @@ def main() -> None:
         cfg = get_config(name)
         results["flops"][name] = forward_flops(cfg, device, points)
         if not args.skip_train:
-            results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3))
+            results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3, compile=args.compile))
             print(json.dumps(results["train"][-1]), flush=True)
-        results["inference"].append(inference_latency(cfg, device, points, repeats))
-        print(json.dumps(results["inference"][-1]), flush=True)
+        if not args.skip_inference:
+            results["inference"].append(inference_latency(cfg, device, points, repeats, compile=args.compile))
+            print(json.dumps(results["inference"][-1]), flush=True)
     print("\n| config | train samples/s | step ms | peak GiB | infer eager fps | infer graph fps | GFLOPs fwd/sample |")
     print("|---|---|---|---|---|---|---|")
     for name in configs:
         t = next((r for r in results["train"] if r["config"] == name), {})
-        i = next(r for r in results["inference"] if r["config"] == name)
+        i = next((r for r in results["inference"] if r["config"] == name), {"eager_fps": float("nan")})
         print(f"| {name} | {t.get('samples_per_s', float('nan')):.1f} | {t.get('step_ms', float('nan')):.1f} | "
               f"{t.get('peak_memory_gib', float('nan')):.1f} | {i['eager_fps']:.1f} | {i.get('graph_fps', float('nan')):.1f} | "
               f"{results['flops'][name] / 1e9:.1f} |")
-    if len(configs) == 2 and results["train"]:
+    if len(configs) == 2 and results["train"] and results["inference"]:
         a, b = (next(r for r in results["train"] if r["config"] == c) for c in configs)
         ia, ib = (next(r for r in results["inference"] if r["config"] == c) for c in configs)
         key = "graph_fps" if "graph_fps" in ia else "eager_fps"

@@ -175,3 +175,20 @@ def test_lamb_step_matches_the_formula():
     update = m_hat / (v_hat.sqrt() + 1e-6) + 0.01 * w0
     expected = w0 - 0.1 * (w0.norm() / update.norm()) * update
     assert torch.allclose(p.detach(), expected, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_compiled_network_matches_eager():
+    torch.manual_seed(0)
+    eager = RVT2Policy(SMALL)
+    compiled = RVT2Policy(SMALL)
+    compiled.load_state_dict(eager.state_dict())
+    compiled.compile_network()
+    obs = observation(SMALL, batch=2)
+    target, bins = torch.tensor([[0.1, 0.2, 0.3], [-0.3, 0.0, 0.2]]), torch.tensor([[1, 2, 3], [4, 5, 6]])
+    want, got = eager(obs, target, bins, target), compiled(obs, target, bins, target)
+    for a, b in zip(want["stages"], got["stages"]):
+        assert torch.allclose(a.logits, b.logits, rtol=1e-4, atol=1e-4)
+    for key in want["action"]:
+        assert torch.allclose(want["action"][key], got["action"][key], rtol=1e-4, atol=1e-4)
+    assert torch.equal(eager.predict(obs).rot_bins, compiled.predict(obs).rot_bins)

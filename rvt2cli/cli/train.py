@@ -26,6 +26,7 @@ def register(subparsers) -> None:
     p.add_argument("--val-episodes", type=int, default=T.val_episodes, help="episodes held out per task for validation")
     p.add_argument("--include-failures", action="store_true", help="also train on episodes in which the expert failed")
     p.add_argument("--no-amp", action="store_true", help="no bf16 autocast on CUDA")
+    p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU: ~1.5x faster after a minute of compiling)")
     p.add_argument("--no-8bit", action="store_true", help="plain LAMB even when bitsandbytes is installed")
     p.add_argument("--render-backend", default=T.render_backend, choices=["warp", "torch"])
     p.add_argument("--no-progress", action="store_true")
@@ -38,7 +39,7 @@ def run(args) -> int:
     opts = TrainOptions(data=args.data, out=args.out, config=args.config, steps=args.steps, batch_size=args.batch_size,
                         lr=args.lr, warmup=args.warmup, max_points=args.max_points, augment=not args.no_augment, seed=args.seed, device=args.device,
                         resume=args.resume, save_every=args.save_every, val_every=args.val_every,
-                        val_episodes=args.val_episodes, include_failures=args.include_failures, amp=not args.no_amp,
+                        val_episodes=args.val_episodes, include_failures=args.include_failures, amp=not args.no_amp, compile=args.compile,
                         eight_bit=not args.no_8bit, render_backend=args.render_backend, progress=not args.no_progress)
     result = train(opts)
     v = result.last_validation

@@ -125,6 +125,13 @@ class RVT2Policy(nn.Module):
 
     forward = forward_train  # what DistributedDataParallel calls
 
+    def compile_network(self) -> None:
+        """torch.compile the transformer stages and the action head in place (the renderer stays
+        eager: warp kernels are opaque to the compiler). Weights and their names are unchanged."""
+        for stage in self.stages:
+            stage.compile()
+        self.action.compile()
+
     @torch.no_grad()
     def predict(self, obs: Observation) -> Prediction:
         outputs = [self.run_stage(0, obs)]
