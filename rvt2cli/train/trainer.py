@@ -54,7 +54,7 @@ class TrainOptions:
     max_bad_steps: int = 50
     include_failures: bool = False
     amp: bool = True
-    compile: bool = False            # torch.compile the network (on an H100: 381 -> 560 samples/s)
+    compile: bool = False            # torch.compile the network (H100 training step: 381 -> 560 samples/s)
     eight_bit: bool = True
     render_backend: str = "warp"
     progress: bool = True
