@@ -7,6 +7,7 @@ imports its heavy dependencies (torch, the simulator) only when it runs, so `rvt
 import argparse
 import importlib
 import sys
+import warnings
 
 from rvt2cli import __version__
 from rvt2cli.errors import UserError
@@ -38,6 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # Warnings for users (e.g. "task not in the checkpoint's training set") as one plain line.
+    warnings.formatwarning = lambda message, *_, **__: f"rvt2: warning: {message}\n"
     if args.command is None:
         parser.print_help()
         return 2

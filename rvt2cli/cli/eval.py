@@ -34,7 +34,6 @@ def run(args) -> int:
     from rvt2cli.eval.runner import EvalOptions, evaluate
 
     warnings.simplefilter("default")
-    warnings.formatwarning = lambda message, *a, **k: f"rvt2: warning: {message}\n"
     opts = EvalOptions(checkpoint=args.checkpoint, tasks=tuple(t for t in (args.tasks or "").split(",") if t),
                        episodes=args.episodes, seed=args.seed, workers=args.workers, oracle=args.oracle,
                        demos=tuple(args.demos or ()), instruction=args.instruction, video=args.video,

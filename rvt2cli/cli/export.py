@@ -17,11 +17,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import warnings
-
     from rvt2cli.export.exporter import export_policy
 
-    warnings.formatwarning = lambda message, *a, **k: f"rvt2: warning: {message}\n"
     report = export_policy(args.checkpoint, args.format, args.out, args.max_points, tuple(args.check_data or ()))
     print(f"exported {args.format} policy to {args.out}/ (parity on {report.samples} observations: position within "
           f"{report.max_position_error_m * 1000:.3f} mm, same rotation bins and gripper)")

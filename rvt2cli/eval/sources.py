@@ -6,8 +6,8 @@ import torch
 from rvt2cli.data import read_episode
 from rvt2cli.eval.executor import KeyframeAction
 from rvt2cli.eval.rollout import KeyframeSource
-from rvt2cli.keyframes.extract import annotate
-from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes, ignore_collisions
+from rvt2cli.keyframes.extract import annotate, label_keyframes
+from rvt2cli.keyframes.rule import KeyframeParams
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.model.policy import Observation
 from rvt2cli.model.rotation import bins_to_quaternion
@@ -30,13 +30,16 @@ class PolicySource(KeyframeSource):
         self.workspace = Workspace.from_bounds(self.bounds.get(task.name, task.scene_bounds))
         self.lang = self.instructions([instruction]).to(self.device)
 
-    def next(self, cloud, gripper_open, finger_positions, keyframes_done) -> KeyframeAction:
+    def observation(self, cloud, gripper_open, finger_positions, keyframes_done) -> Observation:
+        """A world-frame cloud and the robot's state as the policy's input (batch of one, cube coordinates)."""
         xyz = torch.from_numpy(cloud.xyz).to(self.device)[None]
-        obs = Observation(points=self.workspace.to_cube(xyz), rgb=torch.from_numpy(cloud.rgb).to(self.device)[None].float() / 255.0,
-                          num_points=torch.tensor([len(cloud)], device=self.device),
-                          proprio=torch.from_numpy(proprio_vector(gripper_open, finger_positions, keyframes_done)).to(self.device)[None],
-                          lang=self.lang)
-        pred = self.policy.predict(obs)
+        return Observation(points=self.workspace.to_cube(xyz), rgb=torch.from_numpy(cloud.rgb).to(self.device)[None].float() / 255.0,
+                           num_points=torch.tensor([len(cloud)], device=self.device),
+                           proprio=torch.from_numpy(proprio_vector(gripper_open, finger_positions, keyframes_done)).to(self.device)[None],
+                           lang=self.lang)
+
+    def next(self, cloud, gripper_open, finger_positions, keyframes_done) -> KeyframeAction:
+        pred = self.policy.predict(self.observation(cloud, gripper_open, finger_positions, keyframes_done))
         position = self.workspace.to_world(pred.position[0].double().cpu()).numpy()
         quaternion = bins_to_quaternion(pred.rot_bins[0].cpu().numpy(), self.cfg.rotation_bins)
         return KeyframeAction(position=position, quaternion=quaternion, gripper_open=bool(pred.gripper_open[0]),
@@ -60,15 +63,10 @@ class OracleSource(KeyframeSource):
         if demo is not None:
             ep = read_episode(demo)
             return _actions_from_annotation(ep.keyframes["keyframes"] if ep.keyframes else annotate(ep, self.params).keyframes["keyframes"])
-        run = run_expert(self.env, task.expert, seed, max_frames=task.max_steps)
-        gripper_open = np.array([f.gripper_command > 0 for f in run.frames])
-        velocities = np.array([f.state["joint_velocities"] for f in run.frames])
-        kfs = find_keyframes(gripper_open, velocities, self.params)
-        flags = ignore_collisions([f.contacts for f in run.frames], kfs)
-        return [KeyframeAction(position=np.asarray(run.frames[k.frame].state["tcp_pose"][:3], np.float64),
-                               quaternion=np.asarray(run.frames[k.frame].state["tcp_pose"][3:], np.float64),
-                               gripper_open=bool(run.frames[k.frame].gripper_command > 0), ignore_collisions=flag)
-                for k, flag in zip(kfs, flags)]
+        frames = run_expert(self.env, task.expert, seed, max_frames=task.max_steps).frames
+        _, entries = label_keyframes([f.gripper_command for f in frames], np.array([f.state["joint_velocities"] for f in frames]),
+                                     [f.contacts for f in frames], [f.state["tcp_pose"] for f in frames], self.params)
+        return _actions_from_annotation(entries)
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
         self.queue = self.keyframes(task, seed)  # runs the expert, which resets the scene itself

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rvt2cli.data import Episode, read_episode, write_keyframes
-from rvt2cli.keyframes.rule import (KeyframeParams, find_keyframes, ignore_collisions, next_keyframe_index,
+from rvt2cli.keyframes.rule import (Keyframe, KeyframeParams, find_keyframes, ignore_collisions, next_keyframe_index,
                                     observation_starts)
 
 
@@ -15,23 +15,25 @@ class Annotation:
     starts_without_obs: list[int]  # observation starts the file has no images for (not used as samples)
 
 
+def label_keyframes(gripper_command, joint_velocities, contacts, tcp_pose,
+                    params: KeyframeParams = KeyframeParams()) -> tuple[list[Keyframe], list[dict]]:
+    """A dense trajectory's keyframes, and each as its rvt2.Keyframes entry (pose, gripper, collision flag)."""
+    gripper_command = np.asarray(gripper_command)
+    keyframes = find_keyframes(gripper_command > 0, joint_velocities, params)
+    flags = ignore_collisions(contacts, keyframes)
+    entries = [{"frame": k.frame, "tcp_pose": [float(v) for v in tcp_pose[k.frame]],
+                "gripper_open": bool(gripper_command[k.frame] > 0), "ignore_collisions": flag, "reasons": list(k.reasons)}
+               for k, flag in zip(keyframes, flags)]
+    return keyframes, entries
+
+
 def annotate(ep: Episode, params: KeyframeParams = KeyframeParams()) -> Annotation:
     robot = ep.robot
-    keyframes = find_keyframes(robot.gripper_command > 0, robot.joint_velocities, params)
-    flags = ignore_collisions(robot.contacts, keyframes)
+    keyframes, entries = label_keyframes(robot.gripper_command, robot.joint_velocities, robot.contacts, robot.tcp_pose, params)
     have_obs = set(ep.obs_frames)
     starts = observation_starts(ep.num_frames, keyframes, params.obs_every)
     samples = [{"obs_frame": f, "keyframe": next_keyframe_index(f, keyframes)} for f in starts if f in have_obs]
-    message = {
-        "params": params.to_dict(),
-        "keyframes": [
-            {"frame": k.frame, "tcp_pose": [float(v) for v in robot.tcp_pose[k.frame]],
-             "gripper_open": bool(robot.gripper_command[k.frame] > 0), "ignore_collisions": flag,
-             "reasons": list(k.reasons)}
-            for k, flag in zip(keyframes, flags)
-        ],
-        "samples": samples,
-    }
+    message = {"params": params.to_dict(), "keyframes": entries, "samples": samples}
     return Annotation(message, [f for f in starts if f not in have_obs])
 
 
@@ -53,6 +55,3 @@ def describe(annotation: Annotation) -> str:
         text += f"; {len(annotation.starts_without_obs)} observation starts have no images in the file (record with a matching --obs-every)"
     return text
 
-
-def tcp_positions(annotation: Annotation) -> np.ndarray:
-    return np.array([k["tcp_pose"][:3] for k in annotation.keyframes["keyframes"]])

@@ -141,20 +141,13 @@ def render_frame(path, frame: int, out_dir, zoom_at: str | None = None, ply: boo
 def _heatmap_rows(ep, frame, cloud, checkpoint, out: Path, stem: str, written: list, backend: str) -> list[list[np.ndarray]]:
     """The policy's heatmaps over its own views (both stages), next to its predicted point."""
     from rvt2cli.eval.sources import PolicySource
-    from rvt2cli.model.policy import Observation
     from rvt2cli.train.checkpoint import load_policy
-    from rvt2cli.train.samples import proprio_vector
 
     policy, ckpt = load_policy(checkpoint, render_backend=backend)
     source = PolicySource(policy, ckpt)
     source.reset(get_task(ep.meta.task), ep.meta.seed, ep.instruction["text"])
     reached = 0 if ep.keyframes is None else sum(k["frame"] <= frame for k in ep.keyframes["keyframes"])
-    xyz = torch.from_numpy(cloud.xyz)[None]
-    obs = Observation(points=source.workspace.to_cube(xyz), rgb=torch.from_numpy(cloud.rgb)[None].float() / 255.0,
-                      num_points=torch.tensor([len(cloud)]),
-                      proprio=torch.from_numpy(proprio_vector(ep.robot.gripper_command[frame] > 0,
-                                                              ep.robot.joint_positions[frame, -2:], reached))[None],
-                      lang=source.lang)
+    obs = source.observation(cloud, ep.robot.gripper_command[frame] > 0, ep.robot.joint_positions[frame, -2:], reached)
     pred = policy.predict(obs)
     rows = []
     for s, stage in enumerate(pred.stages):
