@@ -1,8 +1,9 @@
 """Recording benchmarks: expert success per task, and insert_peg episodes per minute and MB per episode.
 
-    python -m benchmarks.record_bench [--seeds 20] [--episodes 8] [--workers 2] [--json out.json] [--quick]
+    python -m benchmarks.record_bench [--seeds 20] [--first-seed 0] [--episodes 8] [--workers 2] [--json out.json] [--quick]
 
-Expert success runs each task's expert on seeds 0..N-1 without rendering. Throughput records
+Expert success runs each task's expert on seeds FIRST..FIRST+N-1 without rendering (`--first-seed 10000`:
+the seeds `rvt2 eval` uses; `--episodes 0` skips the throughput part). Throughput records
 successful insert_peg episodes with the default camera rig, as `rvt2 record` does.
 """
 
@@ -18,15 +19,16 @@ from rvt2cli.record.scene import make_env
 from rvt2cli.tasks import all_tasks
 
 
-def expert_success(task, seeds: int) -> dict:
+def expert_success(task, seeds: int, first_seed: int = 0) -> dict:
     env = make_env(task, cameras=("front",), image_size=32)
     statuses, frames, start = [], [], time.perf_counter()
-    for seed in range(seeds):
+    for seed in range(first_seed, first_seed + seeds):
         run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
         statuses.append(run.status)
         frames.append(len(run.frames))
     env.close()
-    return {"task": task.name, "seeds": seeds, "success": statuses.count("success") / seeds,
+    return {"task": task.name, "seeds": seeds, "first_seed": first_seed, "success": statuses.count("success") / seeds,
+            "per_seed": statuses,
             "statuses": {s: statuses.count(s) for s in sorted(set(statuses))},
             "mean_frames": sum(frames) / seeds, "seconds_per_episode": (time.perf_counter() - start) / seeds}
 
@@ -43,6 +45,7 @@ def record_throughput(episodes: int, workers: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--episodes", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--tasks", help="comma-separated (default: all)")
@@ -56,14 +59,15 @@ def main() -> None:
     results = {"machine": describe(), "expert": [], "throughput": None}
     print("| task | expert success | seeds | mean frames | s/episode (no rendering) |\n|---|---|---|---|---|")
     for name in names:
-        r = expert_success(all_tasks()[name], seeds)
+        r = expert_success(all_tasks()[name], seeds, args.first_seed)
         results["expert"].append(r)
         print(f"| {name} | {r['success']:.2f} | {seeds} | {r['mean_frames']:.0f} | {r['seconds_per_episode']:.2f} |", flush=True)
-    t = record_throughput(episodes, args.workers)
-    results["throughput"] = t
-    print(f"\ninsert_peg with {t['workers']} workers: {t['episodes_per_minute']:.1f} successful episodes/min "
-          f"({t['episodes']} episodes, {t['attempts']} attempts, {t['seconds']:.0f} s), "
-          f"{t['mb_per_episode']:.2f} MB/episode (max {t['max_mb']:.2f})")
+    if episodes:
+        t = record_throughput(episodes, args.workers)
+        results["throughput"] = t
+        print(f"\ninsert_peg with {t['workers']} workers: {t['episodes_per_minute']:.1f} successful episodes/min "
+              f"({t['episodes']} episodes, {t['attempts']} attempts, {t['seconds']:.0f} s), "
+              f"{t['mb_per_episode']:.2f} MB/episode (max {t['max_mb']:.2f})")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=2)

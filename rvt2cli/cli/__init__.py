@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "rvt2cli.cli.info",
     "rvt2cli.cli.keyframes",
     "rvt2cli.cli.render",
+    "rvt2cli.cli.pack_samples",
     "rvt2cli.cli.train",
     "rvt2cli.cli.eval",
     "rvt2cli.cli.export",

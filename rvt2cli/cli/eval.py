@@ -2,7 +2,7 @@
 
 
 def register(subparsers) -> None:
-    from rvt2cli.eval.runner import EvalOptions as E
+    from rvt2cli.eval.options import EvalOptions as E
 
     p = subparsers.add_parser(
         "eval", help="evaluate a checkpoint closed-loop in the simulator (success per task, videos, report)",

@@ -9,29 +9,12 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rvt2cli.data.reader import read_episode_overview
 from rvt2cli.errors import UserError
+from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.media import write_rollout, write_video
 from rvt2cli.eval.report import build_report, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
 from rvt2cli.tasks import get_task
-
-
-@dataclass(frozen=True)
-class EvalOptions:
-    checkpoint: str | None
-    tasks: tuple[str, ...] = ()       # default: the checkpoint's training tasks
-    episodes: int = 25
-    seed: int = 10_000                # demos are recorded from seed 0: these seeds are unseen
-    workers: int = 1
-    oracle: bool = False
-    demos: tuple[str, ...] = ()       # oracle from these recorded demos (their seeds) instead of the expert
-    instruction: str | None = None    # another phrasing of the instruction
-    video: bool = False
-    save_rollouts: bool = False
-    keyframe_budget: int = 25
-    out: str | None = None
-    device: str = "cpu"
 
 
 @dataclass(frozen=True)
@@ -111,6 +94,8 @@ def _run(job: Job) -> Outcome:
 
 def _demo_seeds(paths) -> dict[tuple[str, int], str]:
     from rvt2cli.data.paths import episode_paths
+
+    from rvt2cli.data.reader import read_episode_overview
 
     demos = {}
     for path in episode_paths(list(paths)):

@@ -10,9 +10,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from rvt2cli.data import read_episode
-from rvt2cli.data import topics
-from rvt2cli.data.reader import read_episode_overview
 from rvt2cli.errors import UserError
 
 MAX_KEYFRAME_STEPS = 25  # the time feature counts keyframes reached, over this horizon (as PerAct's episode length)
@@ -46,18 +43,33 @@ class SampleSet:
     task_index: list[int] = field(default_factory=list)
     instruction_index: list[int] = field(default_factory=list)
     episode_index: list[int] = field(default_factory=list)
+    keyframe_start: list[bool] = field(default_factory=list)       # observed at frame 0 or at a keyframe
     skipped_empty: int = 0
     skipped_failures: int = 0
 
     def __len__(self) -> int:
         return len(self.xyz)
 
+    def subset(self, indices: list[int]) -> "SampleSet":
+        """These samples only (the task, instruction and episode tables are kept whole)."""
+        per_sample = ["xyz", "rgb", "proprio", "target_position", "target_quaternion", "target_gripper_open",
+                      "target_ignore_collisions", "task_index", "instruction_index", "episode_index", "keyframe_start"]
+        out = SampleSet(tasks=self.tasks, instructions=self.instructions, bounds=self.bounds, rigs=self.rigs,
+                        episodes=self.episodes, skipped_empty=self.skipped_empty, skipped_failures=self.skipped_failures)
+        for name in per_sample:
+            column = getattr(self, name)
+            setattr(out, name, [column[i] for i in indices])
+        return out
+
     def _index(self, table: list[str], value: str) -> int:
         if value not in table:
             table.append(value)
         return table.index(value)
 
-    def add_episode(self, path: Path) -> int:
+    def add_episode(self, path: Path, keyframe_starts_only: bool = False) -> int:
+        """Add an annotated episode's samples (with `keyframe_starts_only`, those observed at frame 0 or at a keyframe)."""
+        from rvt2cli.data.reader import read_episode
+
         ep = read_episode(path)
         task = self._index(self.tasks, ep.meta.task)
         self.bounds[ep.meta.task] = list(ep.meta.scene_bounds)
@@ -65,9 +77,12 @@ class SampleSet:
         instruction = self._index(self.instructions, ep.instruction["text"])
         episode = self._index(self.episodes, str(path))
         keyframes = ep.keyframes["keyframes"]
+        starts = {0} | {kf["frame"] for kf in keyframes}
         added = 0
         for sample in ep.keyframes["samples"]:
             frame, k = sample["obs_frame"], sample["keyframe"]
+            if keyframe_starts_only and frame not in starts:
+                continue
             cloud = ep.cloud(frame)
             if len(cloud) == 0:
                 self.skipped_empty += 1
@@ -83,12 +98,17 @@ class SampleSet:
             self.task_index.append(task)
             self.instruction_index.append(instruction)
             self.episode_index.append(episode)
+            self.keyframe_start.append(frame in starts)
             added += 1
         return added
 
 
-def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True) -> SampleSet:
+def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True,
+                 keyframe_starts_only: bool = False) -> SampleSet:
     """Read every episode's samples. Refuses, in one line, files without keyframes."""
+    from rvt2cli.data import topics
+    from rvt2cli.data.reader import read_episode_overview
+
     unannotated, failures, usable = [], [], []
     for path in paths:
         overview = read_episode_overview(path)
@@ -104,8 +124,27 @@ def load_samples(paths: list[Path], include_failures: bool = False, progress: bo
         raise UserError(f"{names}: no keyframes; run `rvt2 extract-keyframes {folder}/` first")
     samples = SampleSet()
     for path in tqdm(usable, desc="load samples", unit="ep", disable=not progress):
-        samples.add_episode(path)
+        samples.add_episode(path, keyframe_starts_only)
     if len(samples) == 0:
         raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else ""))
     samples.skipped_failures = len(failures)
     return samples
+
+
+def select_samples(samples: SampleSet, episodes_per_task: int | None = None, keyframe_starts_only: bool = False) -> list[int]:
+    """Indices of the samples to train on: those of each task's first `episodes_per_task` episodes (in
+    file-name order, i.e. the lowest seeds) and, with `keyframe_starts_only`, only the samples observed
+    at frame 0 or at a keyframe (the states a closed-loop keyframe policy is in), not in-between ones."""
+    keep_episodes = None
+    if episodes_per_task is not None:
+        by_task: dict[int, list[int]] = {}
+        for e, t in sorted(set(zip(samples.episode_index, samples.task_index)), key=lambda et: samples.episodes[et[0]]):
+            by_task.setdefault(t, []).append(e)
+        short = [samples.tasks[t] for t, eps in by_task.items() if len(eps) < episodes_per_task]
+        if short:
+            raise UserError(f"--episodes-per-task {episodes_per_task}: task(s) {', '.join(short)} have fewer episodes; "
+                            f"record more or lower the number")
+        keep_episodes = {e for eps in by_task.values() for e in eps[:episodes_per_task]}
+    return [i for i in range(len(samples))
+            if (keep_episodes is None or samples.episode_index[i] in keep_episodes)
+            and (not keyframe_starts_only or samples.keyframe_start[i])]

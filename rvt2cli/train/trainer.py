@@ -28,7 +28,8 @@ from rvt2cli.train.batches import TaskUniformSampler, make_batch, pack
 from rvt2cli.train.checkpoint import load_checkpoint, save_checkpoint
 from rvt2cli.train.metrics import prediction_errors
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
-from rvt2cli.train.samples import load_samples
+from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
+from rvt2cli.train.samples import SampleSet, load_samples, select_samples
 
 
 @dataclass
@@ -53,6 +54,8 @@ class TrainOptions:
     log_every: int = 10
     max_bad_steps: int = 50
     include_failures: bool = False
+    episodes_per_task: int | None = None   # only each task's first N episodes (the few-demo setting)
+    keyframe_starts_only: bool = False     # only samples observed at frame 0 or at a keyframe
     amp: bool = True
     compile: bool = False            # torch.compile the network (H100 training step: 381 -> 560 samples/s)
     eight_bit: bool = True
@@ -79,18 +82,30 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def split_episodes(samples, val_episodes: int) -> tuple[list[int], list[int]]:
-    """Hold out the last `val_episodes` episodes of every task that has at least 3."""
+def load_training_data(data: list[str], include_failures: bool, progress: bool) -> tuple[SampleSet, dict[str, torch.Tensor]]:
+    """Samples from one sample cache (with its instruction embeddings) or from episode files (embeddings
+    still to compute)."""
+    caches = [d for d in data if is_sample_cache(d)]
+    if caches:
+        if len(data) > 1:
+            raise UserError(f"--data: give one sample cache ({caches[0]}) or episode files/folders, not both")
+        return load_sample_cache(caches[0])
+    return load_samples(episode_paths(data), include_failures, progress=progress), {}
+
+
+def split_episodes(samples, val_episodes: int, selected: list[int] | None = None) -> tuple[list[int], list[int]]:
+    """Hold out the last `val_episodes` episodes of every task that has at least 3 (among the selected samples)."""
+    selected = list(range(len(samples))) if selected is None else selected
     episode_task = {}
-    for e, t in zip(samples.episode_index, samples.task_index):
-        episode_task[e] = t
+    for i in selected:
+        episode_task[samples.episode_index[i]] = samples.task_index[i]
     held = set()
     for t in set(episode_task.values()):
         episodes = sorted(e for e, et in episode_task.items() if et == t)
         if len(episodes) >= 3 and val_episodes > 0:
             held.update(episodes[-val_episodes:])
-    train = [i for i, e in enumerate(samples.episode_index) if e not in held]
-    val = [i for i, e in enumerate(samples.episode_index) if e in held]
+    train = [i for i in selected if samples.episode_index[i] not in held]
+    val = [i for i in selected if samples.episode_index[i] in held]
     return train, val
 
 
@@ -173,15 +188,22 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     elif (run_dir / "last").exists():
         raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
 
-    samples = load_samples(episode_paths(opts.data), opts.include_failures, progress=opts.progress and rank == 0)
-    train_idx, val_idx = split_episodes(samples, opts.val_episodes)
-    known = resume_ckpt.instruction_embeddings if resume_ckpt else None
+    samples, known = load_training_data(opts.data, opts.include_failures, progress=opts.progress and rank == 0)
+    selected = select_samples(samples, opts.episodes_per_task, opts.keyframe_starts_only)
+    train_idx, val_idx = split_episodes(samples, opts.val_episodes, selected)
+    if not train_idx:
+        raise UserError(f"--data: no training samples left after holding out {opts.val_episodes} episode(s) per task; "
+                        f"lower --val-episodes")
+    known = {text: emb[: cfg.lang_tokens] for text, emb in known.items()}  # a cache stores the longest prefix any config uses
+    if resume_ckpt:
+        known = {**known, **resume_ckpt.instruction_embeddings}
     cache = InstructionCache(cfg.lang_tokens, known)
     lang = cache(samples.instructions)
     packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed)
     packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed) if val_idx else None
     if rank == 0:
-        say(f"data: {len(samples)} samples from {len(samples.episodes)} episodes of {len(samples.tasks)} task(s) "
+        used_episodes = len({samples.episode_index[i] for i in selected})
+        say(f"data: {len(selected)} samples from {used_episodes} episodes of {len(samples.tasks)} task(s) "
             f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
             + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
             + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else ""))
@@ -217,7 +239,8 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     run_dir.mkdir(parents=True, exist_ok=True)
     log = RunLog(run_dir, step) if rank == 0 else None
     if rank == 0 and not opts.resume:
-        (run_dir / "run.json").write_text(json.dumps({"options": asdict(opts), "episodes": samples.episodes}, indent=2))
+        used = sorted({samples.episodes[samples.episode_index[i]] for i in selected})
+        (run_dir / "run.json").write_text(json.dumps({"options": asdict(opts), "episodes": used}, indent=2))
     info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs}
     result = TrainResult(run_dir=run_dir, steps=step, skipped_steps=skipped)
     amp = opts.amp and device.type == "cuda"

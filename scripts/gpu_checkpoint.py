@@ -1,0 +1,95 @@
+"""Carry a trained checkpoint off the GPU machine in pieces, and put it back together here.
+
+The lent GPU machine returns at most 64 MiB per call, in files of at most 16 MiB. On the GPU machine:
+
+    python3 scripts/gpu_checkpoint.py shrink RUN_DIR OUT_DIR     # config + embeddings + fp16 weights in 15 MiB pieces
+
+and here, once every piece has come back into one folder:
+
+    python scripts/gpu_checkpoint.py restore PIECES_DIR RUN_DIR  # a normal run folder that rvt2 eval/export/render read
+
+The weights travel as float16 (half the size) and are restored to float32; config.json records this.
+Training ran under bf16 autocast, so every matrix product already used weights rounded to 8 significant
+bits; float16 keeps 11.
+"""
+
+import argparse
+import hashlib
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, WEIGHTS, resolve  # noqa: E402
+
+PIECE = 15 * 2**20
+HALF = "model.fp16.safetensors"
+
+
+def shrink(run: Path, out: Path) -> None:
+    ckpt = resolve(run)
+    out.mkdir(parents=True, exist_ok=True)
+    weights = load_file(str(ckpt / WEIGHTS))
+    half = {k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in weights.items()}
+    save_file(half, str(out / HALF))
+    blob = (out / HALF).read_bytes()
+    pieces = []
+    for i in range(0, len(blob), PIECE):
+        name = f"weights.part{i // PIECE:03d}"
+        (out / name).write_bytes(blob[i:i + PIECE])
+        pieces.append(name)
+    (out / HALF).unlink()
+    config = json.loads((ckpt / CONFIG).read_text())
+    config["transfer"] = {"weights_dtype": "float16", "note": "weights rounded to float16 to leave the GPU machine"}
+    (out / CONFIG).write_text(json.dumps(config, indent=2))
+    shutil.copy(ckpt / INSTRUCTIONS, out / INSTRUCTIONS)
+    manifest = {"step": config["step"], "pieces": pieces, "sha256": hashlib.sha256(blob).hexdigest()}
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    print(f"{ckpt}: {len(pieces)} pieces, {len(blob) / 2**20:.1f} MiB")
+
+
+def restore(pieces_dir: Path, run: Path) -> None:
+    manifest = json.loads((pieces_dir / "manifest.json").read_text())
+    missing = [p for p in manifest["pieces"] if not (pieces_dir / p).is_file()]
+    if missing:
+        sys.exit(f"{pieces_dir}: missing {', '.join(missing)}")
+    blob = b"".join((pieces_dir / p).read_bytes() for p in manifest["pieces"])
+    if hashlib.sha256(blob).hexdigest() != manifest["sha256"]:
+        sys.exit(f"{pieces_dir}: the pieces do not add up to the weights that were sent (sha256 differs)")
+    name = f"step_{manifest['step']:07d}"
+    final = run / "checkpoints" / name
+    final.mkdir(parents=True, exist_ok=True)
+    half_path = final / HALF
+    half_path.write_bytes(blob)
+    weights = {k: (v.float() if v.is_floating_point() else v).contiguous() for k, v in load_file(str(half_path)).items()}
+    half_path.unlink()
+    save_file(weights, str(final / WEIGHTS))
+    shutil.copy(pieces_dir / CONFIG, final / CONFIG)
+    shutil.copy(pieces_dir / INSTRUCTIONS, final / INSTRUCTIONS)
+    (run / "last").write_text(f"checkpoints/{name}\n")
+    print(f"{run}: checkpoint {name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("shrink")
+    s.add_argument("run", type=Path)
+    s.add_argument("out", type=Path)
+    r = sub.add_parser("restore")
+    r.add_argument("pieces", type=Path)
+    r.add_argument("run", type=Path)
+    args = parser.parse_args()
+    if args.command == "shrink":
+        shrink(args.run, args.out)
+    else:
+        restore(args.pieces, args.run)
+
+
+if __name__ == "__main__":
+    torch.set_grad_enabled(False)
+    main()

@@ -1,0 +1,78 @@
+"""`rvt2 pack-samples` and training from the cache: same samples as the episode files, no MCAP needed."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import TINY_TRAIN, assert_one_line_error
+from rvt2cli.data.paths import episode_paths
+from rvt2cli.errors import UserError
+from rvt2cli.model.config import get_config
+from rvt2cli.model.language import InstructionCache
+from rvt2cli.train.sample_cache import LEVELS, is_sample_cache, load_sample_cache, pack_sample_cache
+from rvt2cli.train.samples import load_samples, select_samples
+
+pytestmark = pytest.mark.sim
+
+
+@pytest.fixture(scope="module")
+def cache(tiny_dataset, tmp_path_factory):
+    path = tmp_path_factory.mktemp("cache") / "samples.safetensors"
+    pack_sample_cache([str(tiny_dataset)], path, progress=False)
+    return path
+
+
+def test_cache_holds_the_episode_samples(tiny_dataset, cache):
+    original = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
+    packed, embeddings = load_sample_cache(cache)
+    assert is_sample_cache(cache) and len(packed) == len(original) > 0
+    assert packed.tasks == original.tasks and packed.instructions == original.instructions
+    step = (np.asarray(original.bounds["stack_cube"][3:]) - original.bounds["stack_cube"][:3]) / LEVELS
+    for a, b in zip(original.xyz, packed.xyz):
+        assert a.shape == b.shape and np.all(np.abs(a - b) <= step / 2 + 1e-6)
+    assert all(np.array_equal(a, b) for a, b in zip(original.rgb, packed.rgb))
+    for name in ("proprio", "target_position", "target_quaternion"):
+        assert np.allclose(np.stack(getattr(original, name)), np.stack(getattr(packed, name)))
+    for name in ("target_gripper_open", "target_ignore_collisions", "task_index", "instruction_index", "episode_index",
+                 "keyframe_start"):
+        assert getattr(original, name) == getattr(packed, name)
+    tokens = get_config("small").lang_tokens
+    expected = InstructionCache(tokens)(packed.instructions)
+    assert torch.allclose(torch.stack([embeddings[t][:tokens] for t in packed.instructions]), expected, atol=1e-6)
+
+
+def test_selection_by_episode_count_and_keyframe_starts(tiny_dataset):
+    samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
+    first = select_samples(samples, episodes_per_task=1)
+    assert first and {samples.episode_index[i] for i in first} == {0}
+    starts = select_samples(samples, keyframe_starts_only=True)
+    assert 0 < len(starts) < len(samples) and all(samples.keyframe_start[i] for i in starts)
+    assert len(load_samples(episode_paths([str(tiny_dataset)]), progress=False, keyframe_starts_only=True)) == len(starts)
+    with pytest.raises(UserError, match="stack_cube have fewer episodes"):
+        select_samples(samples, episodes_per_task=3)
+
+
+def test_training_from_the_cache_needs_no_mcap_libraries(cache, tmp_path):
+    """As on a GPU machine without the recording stack: the episode-format libraries cannot be imported."""
+    blocked = ["mcap", "mcap_protobuf", "foxglove_schemas_protobuf", "jsonschema", "zstandard", "open3d", "sapien",
+               "mani_skill", "mplib"]
+    code = (f"import sys\nfor m in {blocked!r}: sys.modules[m] = None\n"
+            "from rvt2cli.cli import main\nsys.exit(main(sys.argv[1:]))")
+    args = ["train", "--data", str(cache), "--out", str(tmp_path / "run"), "--config", "small", "--steps", "3",
+            "--batch-size", "4", "--max-points", str(TINY_TRAIN["max_points"]), "--val-episodes", "0",
+            "--episodes-per-task", "1", "--keyframe-starts-only", "--no-progress"]
+    p = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "trained 3 steps" in p.stdout and "from 1 episodes" in p.stdout
+    assert (tmp_path / "run" / "last").is_file()
+
+
+def test_bad_cache_input_is_one_line(cache, tiny_dataset, tmp_path, cli):
+    r = cli("pack-samples", tiny_dataset, "--out", tmp_path / "samples.npz")
+    assert_one_line_error(r, "samples.npz", ".safetensors")
+    r = cli("train", "--data", cache, tiny_dataset, "--out", tmp_path / "run", "--config", "small")
+    assert_one_line_error(r, "one sample cache", "not both")
+    assert not (tmp_path / "samples.npz").exists()
