@@ -14,7 +14,9 @@ set -euo pipefail
 W=${W:-/tmp/w}
 STEPS25=${STEPS25:-8000}
 STEPS10=${STEPS10:-4000}
+STEPS_LONG=${STEPS_LONG:-16000}
 CONFIG=${CONFIG:-rvt2}
+RUNS=${RUNS:-"demos25 demos10"}   # demos25_16k: the 25-demo model trained twice as long
 phase=$1
 shift
 
@@ -44,7 +46,7 @@ start)
   cat $W/samples.xz.part.* | xz -d > $W/samples.safetensors
   rm -rf $W/src && mkdir -p $W/src && cp -r rvt2cli scripts $W/src/   # later calls replace the working tree
   cd $W/src
-  setsid nohup bash scripts/gpu_train.sh background > $W/train.log 2>&1 < /dev/null &
+  RUNS="$RUNS" setsid nohup bash scripts/gpu_train.sh background > $W/train.log 2>&1 < /dev/null &
   sleep "${START_WAIT:-90}"
   cat $W/train.log
   ;;
@@ -52,8 +54,13 @@ background)
   export PYTHONPATH=$W/src PYTHONUNBUFFERED=1
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
   python3 -c "import torch; print('torch', torch.__version__)"
-  train_run demos25 --steps "$STEPS25"
-  train_run demos10 --steps "$STEPS10" --episodes-per-task 10
+  for run in $RUNS; do
+    case $run in
+      demos25) train_run demos25 --steps "$STEPS25" ;;
+      demos10) train_run demos10 --steps "$STEPS10" --episodes-per-task 10 ;;
+      demos25_16k) train_run demos25_16k --steps "$STEPS_LONG" ;;
+    esac
+  done
   echo "=== all done $(date -u +%FT%TZ)"
   ;;
 fetch)

@@ -14,7 +14,8 @@ def register(subparsers) -> None:
     p.add_argument("--tasks", help="comma-separated (default: the checkpoint's training tasks)")
     p.add_argument("--episodes", type=int, default=E.episodes, help=f"per task (default {E.episodes})")
     p.add_argument("--seed", type=int, default=E.seed, help=f"first seed (default {E.seed}; demos use 0 upwards)")
-    p.add_argument("--workers", type=int, default=E.workers, help="parallel simulator processes")
+    p.add_argument("--workers", type=int, default=E.workers,
+                   help="parallel simulator processes, one core each")
     p.add_argument("--oracle", action="store_true", help="also run the executor on ground-truth keyframes")
     p.add_argument("--demos", nargs="+", metavar="PATH", help="with --oracle: use these recorded demos' keyframes (and seeds)")
     p.add_argument("--instruction", help="evaluate with this phrasing of the instruction instead of the task's")

@@ -94,7 +94,6 @@ def _run(job: Job) -> Outcome:
 
 def _demo_seeds(paths) -> dict[tuple[str, int], str]:
     from rvt2cli.data.paths import episode_paths
-
     from rvt2cli.data.reader import read_episode_overview
 
     demos = {}
@@ -149,9 +148,16 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
             on_outcome(job, outcome, finished)
 
     if opts.workers <= 1:
-        worker = _Worker(opts, demos)
-        for job in jobs:
-            done(job, worker.run(job))
+        import torch
+
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # as in each worker process: the same arithmetic whatever --workers
+        try:
+            worker = _Worker(opts, demos)
+            for job in jobs:
+                done(job, worker.run(job))
+        finally:
+            torch.set_num_threads(threads)
     else:
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(opts.workers, mp_context=context, initializer=_init, initargs=(opts, demos)) as pool:
