@@ -21,28 +21,25 @@ import sys
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load, load_file, save, save_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from rvt2cli.atomic import atomic_open  # noqa: E402
 from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, WEIGHTS, resolve  # noqa: E402
 
 PIECE = 15 * 2**20
-HALF = "model.fp16.safetensors"
 
 
 def shrink(run: Path, out: Path) -> None:
     ckpt = resolve(run)
     out.mkdir(parents=True, exist_ok=True)
     weights = load_file(str(ckpt / WEIGHTS))
-    half = {k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in weights.items()}
-    save_file(half, str(out / HALF))
-    blob = (out / HALF).read_bytes()
+    blob = save({k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in weights.items()})
     pieces = []
     for i in range(0, len(blob), PIECE):
         name = f"weights.part{i // PIECE:03d}"
         (out / name).write_bytes(blob[i:i + PIECE])
         pieces.append(name)
-    (out / HALF).unlink()
     config = json.loads((ckpt / CONFIG).read_text())
     config["transfer"] = {"weights_dtype": "float16", "note": "weights rounded to float16 to leave the GPU machine"}
     (out / CONFIG).write_text(json.dumps(config, indent=2))
@@ -63,14 +60,12 @@ def restore(pieces_dir: Path, run: Path) -> None:
     name = f"step_{manifest['step']:07d}"
     final = run / "checkpoints" / name
     final.mkdir(parents=True, exist_ok=True)
-    half_path = final / HALF
-    half_path.write_bytes(blob)
-    weights = {k: (v.float() if v.is_floating_point() else v).contiguous() for k, v in load_file(str(half_path)).items()}
-    half_path.unlink()
+    weights = {k: (v.float() if v.is_floating_point() else v).contiguous() for k, v in load(blob).items()}
     save_file(weights, str(final / WEIGHTS))
     shutil.copy(pieces_dir / CONFIG, final / CONFIG)
     shutil.copy(pieces_dir / INSTRUCTIONS, final / INSTRUCTIONS)
-    (run / "last").write_text(f"checkpoints/{name}\n")
+    with atomic_open(run / "last", "w") as f:
+        f.write(f"checkpoints/{name}\n")
     print(f"{run}: checkpoint {name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights)")
 
 

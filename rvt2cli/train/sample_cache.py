@@ -21,9 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import SafetensorError
+from safetensors import SafetensorError, safe_open
 from safetensors.numpy import load_file, save_file
-from safetensors import safe_open
 
 from rvt2cli import __version__
 from rvt2cli.atomic import atomic_path
@@ -47,6 +46,11 @@ def is_sample_cache(path: str | Path) -> bool:
         return False
 
 
+def _require_cache_name(path: Path) -> None:
+    if path.suffix != ".safetensors":
+        raise UserError(f"{path}: a sample cache is a .safetensors file; name it e.g. samples.safetensors")
+
+
 def _quantise(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     unit = (xyz.astype(np.float64) - lo) / (hi - lo)
     return np.clip(np.rint(unit * LEVELS), 0, LEVELS).astype(np.uint16)
@@ -59,8 +63,7 @@ def _dequantise(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 def save_sample_cache(samples: SampleSet, embeddings: dict[str, torch.Tensor], path: str | Path) -> Path:
     """Write `samples` and the embeddings of their instructions to `path` (atomically)."""
     path = Path(path)
-    if path.suffix != ".safetensors":
-        raise UserError(f"{path}: a sample cache is a .safetensors file; name it e.g. samples.safetensors")
+    _require_cache_name(path)
     bounds = {t: np.asarray(samples.bounds[t], np.float64) for t in samples.tasks}
     xyz, offsets = [], [0]
     for i, points in enumerate(samples.xyz):
@@ -97,8 +100,7 @@ def pack_sample_cache(data: list[str], out: str | Path, episodes_per_task: int |
     from rvt2cli.model.language import InstructionCache
 
     out = Path(out)
-    if out.suffix != ".safetensors":
-        raise UserError(f"{out}: a sample cache is a .safetensors file; name it e.g. samples.safetensors")
+    _require_cache_name(out)  # before minutes of loading
     samples = load_samples(episode_paths(data), include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only)
     samples = samples.subset(select_samples(samples, episodes_per_task))
     cache = InstructionCache(max(c.lang_tokens for c in CONFIGS.values()))  # every config takes a prefix

@@ -82,15 +82,16 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def load_training_data(data: list[str], include_failures: bool, progress: bool) -> tuple[SampleSet, dict[str, torch.Tensor]]:
+def load_training_data(data: list[str], include_failures: bool, progress: bool,
+                       keyframe_starts_only: bool = False) -> tuple[SampleSet, dict[str, torch.Tensor]]:
     """Samples from one sample cache (with its instruction embeddings) or from episode files (embeddings
-    still to compute)."""
+    still to compute; with `keyframe_starts_only`, the other samples' clouds are not even fused)."""
     caches = [d for d in data if is_sample_cache(d)]
     if caches:
         if len(data) > 1:
             raise UserError(f"--data: give one sample cache ({caches[0]}) or episode files/folders, not both")
         return load_sample_cache(caches[0])
-    return load_samples(episode_paths(data), include_failures, progress=progress), {}
+    return load_samples(episode_paths(data), include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only), {}
 
 
 def split_episodes(samples, val_episodes: int, selected: list[int] | None = None) -> tuple[list[int], list[int]]:
@@ -188,7 +189,8 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     elif (run_dir / "last").exists():
         raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
 
-    samples, known = load_training_data(opts.data, opts.include_failures, progress=opts.progress and rank == 0)
+    samples, known = load_training_data(opts.data, opts.include_failures, progress=opts.progress and rank == 0,
+                                        keyframe_starts_only=opts.keyframe_starts_only)
     selected = select_samples(samples, opts.episodes_per_task, opts.keyframe_starts_only)
     train_idx, val_idx = split_episodes(samples, opts.val_episodes, selected)
     if not train_idx:
