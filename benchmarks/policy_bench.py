@@ -4,7 +4,7 @@
                                       [--json out.json] [--quick]
 
 Training: the whole step (render both stages, forward, all heads and losses, backward, clipping,
-optimizer) at batch --batch in bf16 (CUDA) with 8-bit LAMB when bitsandbytes is installed; samples/s
+optimizer: the `TrainStep` that `rvt2 train` runs) at batch --batch in bf16 (CUDA) with our 8-bit LAMB; samples/s
 and peak GPU memory. Inference: batch 1, the full policy step (cloud in -> both stages rendered ->
 network -> 3D argmax -> pose out), eager and as one CUDA graph; fps as the median over many steps
 after warm-up, and the graph's outputs compared with the eager ones. Synthetic clouds of uniform
@@ -20,9 +20,11 @@ import torch
 
 from benchmarks.machine import describe
 from rvt2cli.model.config import get_config
-from rvt2cli.model.loss import policy_loss
-from rvt2cli.model.policy import Observation, RVT2Policy
+from rvt2cli.model.observation import Observation
+from rvt2cli.model.policy import RVT2Policy
+from rvt2cli.train.batches import Batch
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
+from rvt2cli.train.step import TrainStep
 
 
 def synthetic_batch(cfg, batch: int, points: int, device, seed: int = 0):
@@ -42,24 +44,22 @@ def timer(device):
     return time.perf_counter()
 
 
-def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int, compile: bool = False) -> dict:
+def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int, compile: bool = False,
+                     eight_bit: bool = True) -> dict:
+    """The training step `rvt2 train` runs (rvt2cli.train.step.TrainStep), on one synthetic batch."""
     policy = RVT2Policy(cfg, render_backend="warp").to(device)
     if compile:
         policy.compile_network()
-    optimizer, name = make_optimizer(policy.parameters(), 3e-4, 1e-4, device)
+    optimizer, name = make_optimizer(policy.parameters(), 3e-4, 1e-4, device, eight_bit)
     schedule = warmup_cosine(optimizer, 10, 10_000)
     obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
+    data = Batch(obs=obs, position=target, rot_bins=bins, gripper=flags[:, 0], collision=flags[:, 1], quaternion=None,
+                 half=None, stage2_center=target)
+    train_step = TrainStep(policy, optimizer, schedule, amp=device.type == "cuda", clip=5.0)
     amp = device.type == "cuda"
 
     def step():
-        with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=amp):
-            out = policy(obs, target, bins, target)
-        loss = policy_loss(out, target, bins, flags[:, 0], flags[:, 1], cfg.image_size, cfg.heatmap_sigma)["total"]
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), 5.0)
-        optimizer.step()
-        schedule.step()
+        train_step(data)
 
     for _ in range(warmup):
         step()
@@ -128,7 +128,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--configs", default="rvt2,rvt")
-    parser.add_argument("--batch", type=int, default=24)
+    parser.add_argument("--batch", default="24", help="training batch size(s), comma-separated, e.g. 24,192")
     parser.add_argument("--points", type=int, default=50_000)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=50)
@@ -139,14 +139,15 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small config, tiny sizes: checks that it runs")
     args = parser.parse_args()
     device = torch.device(args.device)
-    configs, batch, points, steps, repeats = args.configs.split(","), args.batch, args.points, args.steps, args.repeats
+    configs, points, steps, repeats = args.configs.split(","), args.points, args.steps, args.repeats
+    batches = [int(b) for b in args.batch.split(",")]
     if args.quick:
-        configs, batch, points, steps, repeats = ["small"], 2, 2000, 2, 3
+        configs, batches, points, steps, repeats = ["small"], [2], 2000, 2, 3
     results = {"machine": describe(), "device": str(device), "train": [], "inference": [], "flops": {}}
     for name in configs:
         cfg = get_config(name)
         results["flops"][name] = forward_flops(cfg, device, points)
-        if not args.skip_train:
+        for batch in [] if args.skip_train else batches:
             results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3, compile=args.compile))
             print(json.dumps(results["train"][-1]), flush=True)
         if not args.skip_inference:

@@ -1,16 +1,126 @@
-"""Process-wide settings the simulator and the renderer need before they are imported."""
+"""Process-wide settings: the Vulkan driver the simulator renders with, and the random generators an
+episode draws from."""
 
+import ctypes
 import os
+import random
+from dataclasses import dataclass
 from pathlib import Path
 
 LAVAPIPE_ICD = Path("/usr/share/vulkan/icd.d/lvp_icd.json")
+# Where NVIDIA's driver installs its Vulkan ICD manifest (distribution packages, the .run installer,
+# and NVIDIA's container runtime, which mounts the driver under /usr/local/nvidia).
+NVIDIA_ICDS = (Path("/usr/share/vulkan/icd.d/nvidia_icd.json"), Path("/etc/vulkan/icd.d/nvidia_icd.json"),
+               Path("/usr/local/share/vulkan/icd.d/nvidia_icd.json"),
+               Path("/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json"))
+CHOICE_VARIABLE = "RVT2_VULKAN"   # auto (default) | nvidia | lavapipe
+_CHOSEN = "RVT2_VULKAN_CHOSEN"    # set by rvt2 once chosen, so worker processes inherit the choice
 
 
-def use_software_vulkan_if_unset() -> None:
-    """Point SAPIEN at Mesa's lavapipe (CPU Vulkan) unless the user chose an ICD.
+@dataclass(frozen=True)
+class VulkanDriver:
+    name: str             # "nvidia", "lavapipe", or "yours" (VK_ICD_FILENAMES / VK_DRIVER_FILES set by you)
+    icd: str | None       # the ICD manifest used
+    why: str              # one line for `rvt2 doctor`
 
-    SAPIEN otherwise prefers its bundled NVIDIA ICD whenever `nvidia-smi` exists, which fails on
-    machines without a usable GPU driver. Set VK_ICD_FILENAMES yourself to render on a GPU.
-    """
-    if "VK_ICD_FILENAMES" not in os.environ and LAVAPIPE_ICD.exists():
-        os.environ["VK_ICD_FILENAMES"] = str(LAVAPIPE_ICD)
+
+def _nvidia_renders(icd: Path) -> str | None:
+    """None if SAPIEN finds an NVIDIA rendering device through this ICD, else why not. Runs in a
+    separate process: a driver that fails can abort the process that loads it."""
+    import subprocess
+    import sys
+
+    if not Path("/dev/nvidiactl").exists():
+        return "no /dev/nvidiactl (no NVIDIA kernel driver)"
+    env = {**os.environ, "VK_ICD_FILENAMES": str(icd), "VK_DRIVER_FILES": str(icd)}
+    code = "import sapien; print(sapien.render.get_device_summary())"
+    try:
+        probe = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    except (subprocess.TimeoutExpired, OSError) as e:
+        return f"probe failed ({type(e).__name__})"
+    if probe.returncode != 0:
+        lines = [line for line in probe.stderr.strip().splitlines() if line.strip()]
+        return lines[-1][:120] if lines else f"probe exited with {probe.returncode}"
+    if "Supported: 1" not in probe.stdout or "llvmpipe" in probe.stdout:
+        return "SAPIEN found no NVIDIA device through it"
+    return None
+
+
+def choose_vulkan_driver() -> VulkanDriver:
+    """The Vulkan driver SAPIEN should render with: NVIDIA's where it works, else Mesa's lavapipe (CPU).
+
+    RVT2_VULKAN=nvidia or lavapipe forces one; VK_ICD_FILENAMES or VK_DRIVER_FILES set by you are used
+    as they are. The choice is probed once per run and inherited by worker processes."""
+    from rvt2cli.errors import UserError
+
+    wanted = os.environ.get(CHOICE_VARIABLE, "auto").strip().lower()
+    if wanted not in ("auto", "nvidia", "lavapipe"):
+        raise UserError(f"{CHOICE_VARIABLE}={wanted!r}: choose auto, nvidia or lavapipe")
+    if os.environ.get(_CHOSEN):
+        name, _, icd = os.environ[_CHOSEN].partition(":")
+        return VulkanDriver(name, icd or None, "chosen earlier in this run")
+    user = os.environ.get("VK_DRIVER_FILES") or os.environ.get("VK_ICD_FILENAMES")
+    if user and wanted == "auto":
+        return VulkanDriver("yours", user, "VK_ICD_FILENAMES/VK_DRIVER_FILES set in the environment")
+    problems = []
+    if wanted in ("auto", "nvidia"):
+        for icd in NVIDIA_ICDS:
+            if icd.is_file():
+                problem = _nvidia_renders(icd)
+                if problem is None:
+                    return VulkanDriver("nvidia", str(icd), "NVIDIA GPU renders")
+                problems.append(f"{icd}: {problem}")
+        if wanted == "nvidia":
+            raise UserError(f"{CHOICE_VARIABLE}=nvidia but no NVIDIA Vulkan driver works here "
+                            f"({'; '.join(problems) or 'no NVIDIA ICD manifest found'}); unset it to render on the CPU")
+    if LAVAPIPE_ICD.is_file():
+        why = "no NVIDIA Vulkan driver works here" if wanted == "auto" else f"{CHOICE_VARIABLE}=lavapipe"
+        return VulkanDriver("lavapipe", str(LAVAPIPE_ICD), why + (f" ({problems[0]})" if problems else ""))
+    raise UserError("no Vulkan driver for the simulator: install Mesa's lavapipe (`make setup` does) or an NVIDIA driver")
+
+
+def use_vulkan_driver() -> VulkanDriver:
+    """Choose the driver (see `choose_vulkan_driver`) and point SAPIEN and the Vulkan loader at it."""
+    driver = choose_vulkan_driver()
+    if driver.name in ("nvidia", "lavapipe"):
+        os.environ["VK_ICD_FILENAMES"] = os.environ["VK_DRIVER_FILES"] = driver.icd
+    os.environ[_CHOSEN] = f"{driver.name}:{driver.icd or ''}"
+    return driver
+
+
+def seed_everything(seed: int) -> None:
+    """Every random generator a simulated episode draws from: Python's, numpy's, torch's, the C
+    library's (mplib's inverse-kinematics restarts draw from it, through pinocchio's random
+    configurations) and OMPL's (mplib's RRTConnect), so that an episode is the same in any process."""
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+    ctypes.CDLL(None).srand(seed % 2**32)
+    _reset_ompl_generator()
+
+
+OMPL_SEED = 1
+
+
+def _reset_ompl_generator() -> None:
+    """OMPL seeds each new generator from one process-wide seed generator. mplib does not expose it,
+    but its bundled libompl exports `ompl::RNG::setSeed`: the first call (before any planning) fixes
+    the seed, later calls rewind the seed generator to it, so every episode draws the same sequence.
+    OMPL's own log is silenced (it calls a rewind an error)."""
+    import glob
+    import importlib.util
+
+    spec = importlib.util.find_spec("mplib")
+    if spec is None or not spec.origin:
+        return
+    import mplib  # noqa: F401 - loads libompl's dependencies first
+
+    found = glob.glob(os.path.join(os.path.dirname(spec.origin), "..", "mplib.libs", "libompl-*.so*"))
+    if not found:
+        return
+    lib = ctypes.CDLL(found[0])
+    lib._ZN4ompl3msg11setLogLevelENS0_8LogLevelE(ctypes.c_int(4))  # ompl::msg::LOG_NONE
+    lib._ZN4ompl3RNG7setSeedEm(ctypes.c_ulong(OMPL_SEED))

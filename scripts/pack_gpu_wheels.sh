@@ -1,17 +1,43 @@
 #!/usr/bin/env bash
-# Pack warp-lang and bitsandbytes for the GPU machine (Python 3.12, CUDA 13) into .whl/site.part.*
-# (each under the 64 MiB a call may carry). See scripts/gpu_bench.sh.
+# Pack what rvt2 needs on the lent GPU machine (Python 3.12, CUDA torch, numpy 2, no network) into
+# .gpu/site.part.* (each under the 64 MiB a call may carry), for scripts/gpu_onebox.sh.
+#
+# The simulator stack (SAPIEN, ManiSkill, mplib with numpy 1.26: mplib 0.1.1 crashes with numpy 2),
+# the MCAP libraries and warp, as wheels for cp312, unpacked into one folder and stripped of what rvt2
+# never loads (other robots' meshes, SAPIEN's headers, warp's examples and tests, IPython).
+# The text encoder (88 MB) stays here: .gpu/embeddings.safetensors carries every task's instructions
+# (scripts/embed_instructions.py, read through RVT2_EMBEDDINGS).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-mkdir -p .whl && cd .whl
-python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
-  --platform manylinux_2_28_x86_64 --platform manylinux_2_24_x86_64 --platform manylinux_2_17_x86_64 \
-  -d . warp-lang==1.19.0 bitsandbytes==0.50.2
-rm -rf site && mkdir site
-(cd site && for w in ../warp_lang-*.whl ../bitsandbytes-*.whl; do unzip -q "$w"; done
- rm -rf warp/examples warp/tests
- find bitsandbytes -name 'libbitsandbytes_*.so' ! -name '*cuda130*' ! -name '*cpu*' -delete)
-tar -cf - -C site . | xz -T0 -6 > site.tar.xz
-rm -f site.part.* && split -b 53m site.tar.xz site.part.
-rm -rf site site.tar.xz
-ls -la site.part.*
+PY=${PY:-.venv/bin/python}
+WHEELS=(
+  mani-skill==3.0.1 sapien==3.0.3 mplib==0.1.1 numpy==1.26.4 toppra==0.6.10 transforms3d==0.4.2 trimesh==5.2.0
+  gymnasium==1.4.0 Farama-Notifications==0.0.6 dacite==1.9.2 defusedxml==0.7.1 GitPython==3.2.1 gitdb==4.0.12
+  smmap==5.0.3 tyro==1.0.17 docstring_parser==0.18.0 typeguard==4.6.0 pytorch-kinematics==0.7.6
+  arm_pytorch_utilities==0.5.0 pytorch-seed==0.2.0 importlib_resources==7.1.0 pyperclip==1.11.0
+  mcap==1.6.0 mcap-protobuf-support==0.6.0 foxglove-schemas-protobuf==0.4.0 zstandard==0.25.0
+  jsonschema==4.26.0 jsonschema-specifications==2025.9.1 referencing==0.37.0 rpds-py==2026.9.1
+  warp-lang==1.19.0
+)
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+for wheel in "${WHEELS[@]}"; do
+  $PY -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_24_x86_64 \
+    --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 --platform manylinux1_x86_64 --platform any \
+    -d "$work/wheels" "$wheel" 2>/dev/null
+done
+mkdir "$work/site"
+(cd "$work/site" && for w in ../wheels/*.whl; do unzip -q -o "$w"; done
+ find mani_skill/assets/robots -mindepth 1 -maxdepth 1 ! -name panda -exec rm -rf {} +
+ find mani_skill/assets/robots/panda -mindepth 1 -maxdepth 1 -type d ! -name franka_description ! -name realsense2_description -exec rm -rf {} +
+ rm -rf mani_skill/assets/environment_maps mani_skill/assets/*.glb
+ find mani_skill/utils/scene_builder -mindepth 1 -maxdepth 1 -type d ! -name table -exec sh -c 'find "$0" -type f ! -name "*.py" -delete' {} \;
+ rm -rf sapien/include warp/examples warp/tests zstandard/_cffi*.so
+ find . -name __pycache__ -type d -exec rm -rf {} +)
+$PY scripts/embed_instructions.py --out "$work/site/embeddings.safetensors"
+mkdir -p .gpu
+rm -f .gpu/site.part.*
+tar -cf - -C "$work/site" . | xz -T2 -9 | split -b 60m - .gpu/site.part.
+(cd .gpu && sha256sum site.part.* > site.sha256)
+ls -la .gpu/site.part.*

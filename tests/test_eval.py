@@ -41,3 +41,93 @@ def test_eval_refuses_missing_and_foreign_checkpoints(tmp_path, cli):
     (tmp_path / "foreign" / "config.json").write_text("{}")
     (tmp_path / "foreign" / "model.safetensors").write_bytes(b"")
     assert_one_line_error(cli("eval", "--checkpoint", tmp_path / "foreign"), "foreign", "not an rvt2 checkpoint")
+
+
+def test_oracle_report_carries_pose_errors_at_rest(tmp_path):
+    """One oracle episode of insert_peg: every keyframe's error at rest is in eval.json and eval.md."""
+    result = evaluate(EvalOptions(checkpoint=None, oracle=True, tasks=("insert_peg",), episodes=1, out=str(tmp_path)))
+    summary = result.report["tasks"]["insert_peg"]["oracle"]
+    pose = summary["pose_error"]
+    assert pose["keyframes"] >= 4
+    assert 0 <= pose["position_mm"]["median"] < 0.5 and 0 <= pose["rotation_deg"]["median"] < 0.3
+    steps = result.report["episodes"][0]["steps"]
+    assert all(s["position_error_mm"] is not None for s in steps if s["reached"])
+    assert "error at rest" in (tmp_path / "eval.md").read_text()
+
+
+def test_untrained_task_is_warned_in_one_line_and_noted(tiny_checkpoint, tmp_path, cli):
+    run_dir, _ = tiny_checkpoint
+    r = cli("eval", "--checkpoint", run_dir, "--tasks", "push_cube", "--episodes", "1", "--keyframe-budget", "1",
+            "--out", tmp_path, "--no-progress")
+    assert r.returncode == 0, r.stderr[-2000:]
+    warnings = [line for line in r.stderr.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "push_cube" in warnings[0] and "training set" in warnings[0], r.stderr
+    assert json.loads((tmp_path / "eval.json").read_text())["untrained_tasks"] == ["push_cube"]
+    assert "generalisation test" in (tmp_path / "eval.md").read_text()
+
+
+def test_a_crashed_worker_keeps_the_finished_episodes_and_resume_runs_the_rest(tmp_path):
+    """A simulator process killed mid-run (as a native crash would end it): the finished episodes are
+    in the journal, the command says so in one line, and --resume completes the evaluation."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    out = tmp_path / "eval"
+    argv = [sys.executable, "-m", "rvt2cli", "eval", "--oracle", "--tasks", "push_cube", "--episodes", "6", "--workers", "2",
+            "--out", str(out), "--no-progress"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    journal = out / "episodes.jsonl"
+    deadline = time.time() + 600
+    while time.time() < deadline and proc.poll() is None:
+        if journal.exists() and len(journal.read_text().splitlines()) >= 2:  # header + one finished episode
+            break
+        time.sleep(0.2)
+    workers = [c for c in psutil.Process(proc.pid).children(recursive=True) if "spawn_main" in " ".join(c.cmdline())]
+    assert workers, "no worker process to kill"
+    os.kill(workers[0].pid, signal.SIGKILL)
+    _, stderr = proc.communicate(timeout=600)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "--resume" in lines[0] and "Traceback" not in stderr, stderr
+    kept = [json.loads(line) for line in journal.read_text().splitlines()[1:]]
+    assert 1 <= len(kept) < 6
+    r = subprocess.run(argv + ["--resume"], capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    report = json.loads((out / "eval.json").read_text())
+    assert sorted(e["seed"] for e in report["episodes"]) == list(range(10000, 10006))
+    assert [json.loads(line) for line in journal.read_text().splitlines()[1:len(kept) + 1]] == kept  # not run again
+
+
+def test_eval_without_resume_refuses_a_folder_with_an_evaluation(tmp_path, cli):
+    (tmp_path / "episodes.jsonl").write_text('{"rvt2_eval_journal": 1, "plan": {}}\n')
+    assert_one_line_error(cli("eval", "--oracle", "--tasks", "push_cube", "--episodes", "1", "--out", tmp_path),
+                          "holds an evaluation already", "--resume")
+
+
+def test_offline_precision_of_a_checkpoint_on_recorded_demos(tiny_checkpoint, tiny_dataset, tmp_path, cli):
+    run_dir, _ = tiny_checkpoint
+    out = tmp_path / "offline"
+    r = cli("eval", "--checkpoint", run_dir, "--offline", tiny_dataset, "--out", out, "--no-progress")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "stage-2 error" in r.stdout
+    report = json.loads((out / "offline.json").read_text())
+    stack = report["tasks"]["stack_cube"]
+    assert stack["samples"] == report["overall"]["samples"] > 10
+    assert stack["stage2_mm"]["median"] < 10.0 and stack["stage2_mm"]["p90"] >= stack["stage2_mm"]["median"]  # trained on them
+    assert stack["gripper_accuracy"] >= 0.9
+    assert set(stack["keyframes"]) >= {"0", "1"} and "stage 2 mm" in (out / "offline.md").read_text()
+
+
+def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):
+    from rvt2cli.record.recorder import RecordOptions, record
+
+    run_dir, _ = tiny_checkpoint
+    record("stack_cube", 1, tmp_path / "raw", options=RecordOptions(cameras=("front", "left_shoulder", "right_shoulder"),
+                                                                    image_size=32))
+    assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "raw"), "no keyframes", "extract-keyframes")
+    record("push_cube", 1, tmp_path / "other", options=RecordOptions(cameras=("front",), image_size=32))
+    assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "other"), "not trained on task(s) push_cube")

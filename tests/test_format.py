@@ -9,6 +9,7 @@ from mcap.writer import Writer
 from conftest import assert_one_line_error
 from episode_factory import random_episode
 from rvt2cli.data import EpisodeMeta, EpisodeWriter, read_episode, write_keyframes
+from rvt2cli.data.keyframes import Keyframe, KeyframeAnnotation, Sample
 from rvt2cli.data.fusion import fuse
 from rvt2cli.data.writer import McapChannels
 from rvt2cli.errors import UserError
@@ -58,12 +59,12 @@ def test_frames_without_observations_and_out_of_range_are_clear(tmp_path):
 def test_keyframes_are_written_idempotently(tmp_path):
     path = tmp_path / "ep.mcap"
     random_episode(path)
-    annotation = {
-        "params": {"stop_velocity": 0.1},
-        "keyframes": [{"frame": 6, "tcp_pose": [0, 0, 0, 0, 0, 0, 1], "gripper_open": False,
-                       "ignore_collisions": False, "reasons": ["gripper"]}],
-        "samples": [{"obs_frame": 0, "keyframe": 0}, {"obs_frame": 5, "keyframe": 0}],
-    }
+    annotation = KeyframeAnnotation(
+        keyframes=(Keyframe.from_pose([0.1, 0.2, 0.3, 0, 0, 0, 1], gripper_open=False, ignore_collisions=False, frame=6,
+                                      reasons=("gripper",)),),
+        samples=(Sample(obs_frame=0, keyframe=0), Sample(obs_frame=5, keyframe=0)),
+        params={"stop_velocity": 0.1},
+    )
     before = read_episode(path)
     write_keyframes(path, annotation)
     first = path.read_bytes()
@@ -71,6 +72,7 @@ def test_keyframes_are_written_idempotently(tmp_path):
     assert path.read_bytes() == first
     after = read_episode(path)
     assert after.keyframes == annotation
+    assert after.keyframes.keyframes[0].position == (0.1, 0.2, 0.3) and after.keyframes.starts == {0, 6}
     # everything else is unchanged
     assert np.array_equal(after.robot.joint_positions, before.robot.joint_positions)
     assert np.array_equal(after.cloud(5).xyz, before.cloud(5).xyz)

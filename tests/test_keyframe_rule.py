@@ -5,7 +5,7 @@ import numpy as np
 from rvt2cli.keyframes.rule import (KeyframeParams, find_keyframes, ignore_collisions, next_keyframe_index,
                                     observation_starts)
 
-P = KeyframeParams(stop_velocity=0.02, stop_buffer=4, obs_every=10)
+P = KeyframeParams(stop_velocity=0.02, pause_velocity=0.02, stop_buffer=4, obs_every=10)
 
 
 def trajectory(n, moving_spans, gripper_changes=()):
@@ -82,3 +82,23 @@ def test_ignore_collisions_marks_motions_that_make_new_contact():
     for t in range(50, 55):     # new contact on the way to 59
         contacts[t] = ["box"]
     assert ignore_collisions(contacts, kfs) == [False, False, True]
+
+
+def test_a_pause_between_chained_motions_is_a_keyframe_at_its_slowest_frame():
+    # a scripted expert chains two motions: the arm slows to 0.03 rad/s (never below 0.02) and goes on
+    speed = np.concatenate([np.linspace(0, 0.5, 10), np.linspace(0.5, 0.09, 10), [0.06, 0.04, 0.03, 0.035, 0.07],
+                            np.linspace(0.2, 0.5, 10), np.linspace(0.5, 0.0, 10), np.zeros(5)])
+    velocities = np.zeros((len(speed), 7))
+    velocities[:, 0] = speed
+    gripper = np.ones(len(speed), dtype=bool)
+    kfs = find_keyframes(gripper, velocities)  # the default rule: pausing below 0.05, stopped below 0.02
+    assert [k.frame for k in kfs][:2] == [22, 44]  # the pause's slowest frame (0.03), then where the arm stops
+    # the stop threshold alone (the rule without pauses) misses it
+    assert 22 not in [k.frame for k in find_keyframes(gripper, velocities, KeyframeParams(pause_velocity=0.02))]
+
+
+def test_a_slow_down_that_does_not_pause_is_no_keyframe():
+    speed = np.concatenate([np.linspace(0, 0.3, 10), [0.2, 0.12, 0.09, 0.12, 0.2], np.linspace(0.2, 0.0, 10), np.zeros(3)])
+    velocities = np.zeros((len(speed), 7))
+    velocities[:, 0] = speed
+    assert [k.frame for k in find_keyframes(np.ones(len(speed), dtype=bool), velocities)] == [24, 27]

@@ -62,24 +62,24 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
     assert summary.counts() == {"success": 1}
     path = tmp_path / "insert_peg_0002.mcap"
     annotation = extract_file(path)
-    kfs = annotation.keyframes["keyframes"]
-    open_flags = [k["gripper_open"] for k in kfs]
+    kfs = annotation.keyframes.keyframes
+    open_flags = [k.gripper_open for k in kfs]
     # reach above the peg (open) -> grasp (closes) -> pre-insert + refinements (closed) -> insert (last)
     assert open_flags[0] is True and open_flags[1] is False and all(not f for f in open_flags[1:])
-    assert kfs[1]["reasons"] == ["gripper"] and kfs[-1]["reasons"] == ["last"]
+    assert kfs[1].reasons == ("gripper",) and kfs[-1].reasons == ("last",)
     assert len(kfs) >= 4
     ep = read_episode(path)
-    peg_height = ep.robot.tcp_pose[kfs[1]["frame"], 2]
+    peg_height = ep.robot.tcp_pose[kfs[1].frame, 2]
     assert peg_height < 0.05  # grasp is at the peg, on the table
     # pre-insert: aligned with the hole, the final insert moves the peg along the hole axis
-    pre, last = np.array(kfs[-2]["tcp_pose"][:3]), np.array(kfs[-1]["tcp_pose"][:3])
+    pre, last = np.array(kfs[-2].position), np.array(kfs[-1].position)
     assert 0.02 < np.linalg.norm(last - pre) < 0.15
     # the final insertion touches the box; nothing before it does
-    assert kfs[-1]["ignore_collisions"] and not any(k["ignore_collisions"] for k in kfs[:2])
+    assert kfs[-1].ignore_collisions and not any(k.ignore_collisions for k in kfs[:2])
     # samples start at frame 0 and point at the next keyframe
-    samples = annotation.keyframes["samples"]
-    assert samples[0] == {"obs_frame": 0, "keyframe": 0}
-    assert all(kfs[s["keyframe"]]["frame"] > s["obs_frame"] for s in samples)
+    samples = annotation.keyframes.samples
+    assert (samples[0].obs_frame, samples[0].keyframe) == (0, 0)
+    assert all(kfs[s.keyframe].frame > s.obs_frame for s in samples)
     assert read_episode(path).keyframes == annotation.keyframes
 
 

@@ -5,6 +5,7 @@ import pytest
 from PIL import Image
 
 from conftest import assert_one_line_error
+from rvt2cli.eval.heatmaps import heatmap_overlay
 from rvt2cli.render.snapshot import render_frame
 
 pytestmark = pytest.mark.sim
@@ -13,7 +14,8 @@ pytestmark = pytest.mark.sim
 def test_render_writes_views_zoom_heatmaps_and_ply(tiny_dataset, tiny_checkpoint, tmp_path):
     run_dir, _ = tiny_checkpoint
     episode = sorted(tiny_dataset.glob("*.mcap"))[0]
-    written = render_frame(episode, 0, tmp_path, zoom_at="next-keyframe", ply=True, checkpoint=str(run_dir), image_size=96)
+    written = render_frame(episode, 0, tmp_path, zoom_at="next-keyframe", ply=True, overlay=heatmap_overlay(str(run_dir)),
+                           image_size=96)
     names = {p.name for p in written}
     stem = f"{episode.stem}_f0000"
     for view in ("top", "front", "right"):

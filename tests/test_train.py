@@ -60,7 +60,7 @@ def test_resume_reproduces_the_same_losses(tiny_dataset, tmp_path):
 
 def test_resume_with_another_config_is_refused(tiny_checkpoint, tiny_dataset):
     run_dir, _ = tiny_checkpoint
-    with pytest.raises(UserError, match=r"was trained with config 'small'.*--config small"):
+    with pytest.raises(UserError, match=r"--config 'rvt' differs from the run's 'small'.*keeps its options"):
         train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), resume=True, config="rvt", steps=301))
 
 
@@ -107,3 +107,56 @@ def test_torchrun_trains_with_two_processes(tiny_dataset, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert "batch 2 x 2" in r.stdout  # two ranks, one log
     assert load_checkpoint(out).info["step"] == 3
+
+
+def _torchrun(out, *extra, steps=12):
+    import os
+    import sys
+    from pathlib import Path
+
+    torchrun = Path(sys.executable).parent / "torchrun"
+    return [str(torchrun), "--nproc-per-node", "2", "-m", "rvt2cli", "train", "--out", str(out), *extra]
+
+
+def test_ddp_run_killed_and_resumed_continues_exactly_on_both_ranks(tiny_dataset, tmp_path):
+    """Two gloo processes, killed after their first checkpoint and resumed with only --resume: the
+    result equals an uninterrupted run, and each rank kept its own sampling state."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    common = ["--data", str(tiny_dataset), "--config", "small", "--steps", "16", "--batch-size", "2", "--max-points", "3000",
+              "--val-episodes", "0", "--save-every", "4", "--log-every", "1", "--warmup", "2", "--lr", "3e-3", "--no-progress"]
+    straight = subprocess.run(_torchrun(tmp_path / "a", *common), capture_output=True, text=True, timeout=900, env=env)
+    assert straight.returncode == 0, straight.stderr[-3000:]
+
+    run = tmp_path / "b"
+    proc = subprocess.Popen(_torchrun(run, *common), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                            start_new_session=True)
+    deadline = time.time() + 600
+    while not (run / "last").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    killed_at = load_checkpoint(run).info["step"]
+    assert killed_at < 16
+    state = load_checkpoint(run).state()
+    assert state["world_size"] == 2 and not torch.equal(state["generators"][0], state["generators"][1])
+
+    resumed = subprocess.run(_torchrun(run, "--resume"), capture_output=True, text=True, timeout=900, env=env)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(run)
+    assert b.info["step"] == 16 and all(torch.equal(a.weights[k], b.weights[k]) for k in a.weights)
+    rows = lambda d: [(r["step"], r["loss"]) for r in csv.DictReader(open(d / "train.csv"))]  # noqa: E731
+    assert rows(run) == rows(tmp_path / "a")
+
+
+def test_resume_keeps_the_runs_options_and_refuses_a_changed_one(tiny_checkpoint, cli):
+    run_dir, _ = tiny_checkpoint
+    r = cli("train", "--out", run_dir, "--resume", "--steps", "400", "--lr", "1e-3")
+    assert_one_line_error(r, "--steps 400", "differs from the run's 300", "keeps its options")
+    r = cli("train", "--out", run_dir, "--resume", "--no-progress")  # the stored options: already at its last step
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "trained 300 steps" in r.stdout

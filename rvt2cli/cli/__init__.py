@@ -4,17 +4,18 @@ Each module in `COMMAND_MODULES` registers its own subcommand through `register(
 imports its heavy dependencies (torch, the simulator) only when it runs, so `rvt2 --help` is quick.
 """
 
-import argparse
 import importlib
 import sys
 import warnings
 
 from rvt2cli import __version__
+from rvt2cli.cli.args import Parser
 from rvt2cli.errors import UserError
 
 # In the order of the data flow; `rvt2 --help` lists them in this order.
 COMMAND_MODULES = [
     "rvt2cli.cli.record",
+    "rvt2cli.cli.import_rosbag",
     "rvt2cli.cli.info",
     "rvt2cli.cli.keyframes",
     "rvt2cli.cli.render",
@@ -22,11 +23,12 @@ COMMAND_MODULES = [
     "rvt2cli.cli.train",
     "rvt2cli.cli.eval",
     "rvt2cli.cli.export",
+    "rvt2cli.cli.doctor",
 ]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def build_parser() -> Parser:
+    parser = Parser(
         prog="rvt2",
         description="RVT-2 for ManiSkill/SAPIEN: record demos, extract keyframes, render views, train, evaluate, export.",
     )
@@ -50,6 +52,10 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as e:
         print(f"rvt2: error: {e}", file=sys.stderr)
         return e.exit_code
+    except OSError as e:  # the environment refused a file operation that no check above anticipated
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"rvt2: error: {where}{e.strerror or e}; check the path and its permissions", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("rvt2: interrupted", file=sys.stderr)
         return 130

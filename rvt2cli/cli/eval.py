@@ -1,33 +1,44 @@
-"""`rvt2 eval`: closed-loop success in the simulator, with the executor's ceiling (--oracle)."""
+"""`rvt2 eval`: closed-loop success in the simulator, with the executor's ceiling (--oracle); or, with
+--offline, the policy's precision on recorded demos without a simulator."""
+
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, SEED, integer, names
 
 
 def register(subparsers) -> None:
     from rvt2cli.eval.options import EvalOptions as E
 
     p = subparsers.add_parser(
-        "eval", help="evaluate a checkpoint closed-loop in the simulator (success per task, videos, report)",
+        "eval", help="evaluate a checkpoint closed-loop in the simulator (success per task, videos, report), or offline on demos",
         description="Run episodes on seeds the demos did not use: observe, predict the next keyframe, execute it "
-                    "with the mplib motion planner, until the task's success check passes or a budget runs out. "
-                    "--oracle runs the same executor on ground-truth keyframes: the ceiling of any keyframe policy.",
+                    "with the mplib motion planner and a joint servo, until the task's success check passes or a budget "
+                    "runs out. --oracle runs the same executor on ground-truth keyframes: the ceiling of a keyframe policy. "
+                    "--offline DEMOS scores the policy's predictions on recorded demos in millimetres, without a simulator.",
     )
     p.add_argument("--checkpoint", help="run folder or checkpoint written by `rvt2 train`")
-    p.add_argument("--tasks", help="comma-separated (default: the checkpoint's training tasks)")
-    p.add_argument("--episodes", type=int, default=E.episodes, help=f"per task (default {E.episodes})")
-    p.add_argument("--seed", type=int, default=E.seed, help=f"first seed (default {E.seed}; demos use 0 upwards)")
-    p.add_argument("--workers", type=int, default=E.workers,
-                   help="parallel simulator processes, one core each")
+    p.add_argument("--offline", nargs="+", metavar="DEMOS", help="score the checkpoint on these recorded episodes (files or folders)")
+    p.add_argument("--tasks", type=names, help="comma-separated (default: the checkpoint's training tasks)")
+    p.add_argument("--episodes", type=COUNT, default=E.episodes, help=f"per task (default {E.episodes})")
+    p.add_argument("--seed", type=SEED, default=E.seed, help=f"first seed (default {E.seed}; demos use 0 upwards)")
+    p.add_argument("--workers", type=integer(1, 256), default=E.workers, help="parallel simulator processes, one core each")
     p.add_argument("--oracle", action="store_true", help="also run the executor on ground-truth keyframes")
     p.add_argument("--demos", nargs="+", metavar="PATH", help="with --oracle: use these recorded demos' keyframes (and seeds)")
     p.add_argument("--instruction", help="evaluate with this phrasing of the instruction instead of the task's")
     p.add_argument("--video", action="store_true", help="write an mp4 per episode (slow on CPU rendering)")
     p.add_argument("--save-rollouts", action="store_true", help="write each rollout's predictions as MCAP")
-    p.add_argument("--keyframe-budget", type=int, default=E.keyframe_budget)
-    p.add_argument("--out", help="output folder (default: CHECKPOINT/eval)")
+    p.add_argument("--keyframe-budget", type=COUNT, default=E.keyframe_budget, help=f"keyframes per episode (default {E.keyframe_budget})")
+    p.add_argument("--max-replans", type=NON_NEGATIVE, default=E.max_replans,
+                   help=f"re-predictions after an unreachable keyframe, in a row (default {E.max_replans})")
+    p.add_argument("--resume", action="store_true", help="continue the evaluation in --out (after a crash or Ctrl-C)")
+    p.add_argument("--batch-size", type=COUNT, default=8, help="--offline: observations per forward pass (default 8)")
+    p.add_argument("--out", help="output folder (default: CHECKPOINT/eval, or CHECKPOINT/offline)")
     p.add_argument("--device", default=E.device, help="policy device (default cpu)")
+    p.add_argument("--no-progress", action="store_true")
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
+    if args.offline:
+        return run_offline(args)
     import warnings
 
     from tqdm import tqdm
@@ -35,14 +46,14 @@ def run(args) -> int:
     from rvt2cli.eval.runner import EvalOptions, evaluate
 
     warnings.simplefilter("default")
-    opts = EvalOptions(checkpoint=args.checkpoint, tasks=tuple(t for t in (args.tasks or "").split(",") if t),
-                       episodes=args.episodes, seed=args.seed, workers=args.workers, oracle=args.oracle,
-                       demos=tuple(args.demos or ()), instruction=args.instruction, video=args.video,
-                       save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget, out=args.out, device=args.device)
+    opts = EvalOptions(checkpoint=args.checkpoint, tasks=args.tasks or (), episodes=args.episodes, seed=args.seed,
+                       workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
+                       video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
+                       max_replans=args.max_replans, out=args.out, device=args.device, resume=args.resume)
     bars = []
 
     def on_start(total):
-        bars.append(tqdm(total=total, desc="eval", unit="ep", dynamic_ncols=True))
+        bars.append(tqdm(total=total, desc="eval", unit="ep", dynamic_ncols=True, disable=args.no_progress))
 
     def on_outcome(job, outcome, finished):
         bar = bars[0]
@@ -60,6 +71,26 @@ def run(args) -> int:
         for bar in bars:
             bar.close()
     for task, per in result.report["tasks"].items():
-        print(f"{task:<18} " + "  ".join(f"{s} {r['success_rate']:.0%} ({r['successes']}/{r['episodes']})" for s, r in per.items()))
+        print(f"{task:<18} " + "  ".join(
+            f"{s} {r['success_rate']:.0%} ({r['successes']}/{r['episodes']}, error at rest "
+            + (f"{r['pose_error']['position_mm']['median']:.2f} mm median, {r['pose_error']['position_mm']['p95']:.2f} p95)"
+               if r['pose_error']['keyframes'] else "-)")
+            for s, r in per.items()))
     print(f"report: {result.out_dir}/eval.md, eval.json, eval.png")
+    return 0
+
+
+def run_offline(args) -> int:
+    from pathlib import Path
+
+    from rvt2cli.errors import UserError
+    from rvt2cli.eval.offline import evaluate_offline, headline_line
+
+    if not args.checkpoint:
+        raise UserError("eval --offline needs --checkpoint")
+    out = args.out or str(Path(args.checkpoint) / "offline")
+    report = evaluate_offline(args.checkpoint, args.offline, out, device=args.device, batch_size=args.batch_size,
+                              progress=not args.no_progress)
+    print(headline_line(report))
+    print(f"report: {out}/offline.md, offline.json")
     return 0

@@ -1,5 +1,7 @@
 """`rvt2 export`: a deployable, parity-checked policy (ONNX or TorchScript)."""
 
+from rvt2cli.cli.args import integer
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -10,8 +12,8 @@ def register(subparsers) -> None:
     )
     p.add_argument("--checkpoint", required=True, help="run folder or checkpoint written by `rvt2 train`")
     p.add_argument("--format", default="onnx", choices=["onnx", "torchscript"])
-    p.add_argument("--out", default="policy", help="output folder (default policy/)")
-    p.add_argument("--max-points", type=int, default=50_000, help="cloud size the model takes (pad smaller clouds)")
+    p.add_argument("--out", default="policy", help="output folder (default policy/); an existing one must be a previous export")
+    p.add_argument("--max-points", type=integer(16, 2**31 - 2), default=50_000, help="cloud size the model takes (pad smaller clouds)")
     p.add_argument("--check-data", nargs="+", metavar="PATH", help="episodes for the parity check (default: the run's own)")
     p.set_defaults(run=run)
 

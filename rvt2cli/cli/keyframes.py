@@ -2,6 +2,7 @@
 
 import sys
 
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, number
 from rvt2cli.errors import UserError
 
 
@@ -16,12 +17,15 @@ def register(subparsers) -> None:
     )
     p.add_argument("files", nargs="+", metavar="FILE", help="episode .mcap files or folders of them")
     p.add_argument("--dry-run", action="store_true", help="only report; write nothing")
-    p.add_argument("--stop-velocity", type=float, default=d.stop_velocity,
-                   help=f"rad/s: the arm is at rest when every arm joint is slower (default {d.stop_velocity}; "
-                        "PerAct/RVT use 0.1 on RLBench, which fires one 20 Hz step early in ManiSkill)")
-    p.add_argument("--stop-buffer", type=int, default=d.stop_buffer,
+    p.add_argument("--stop-velocity", type=number(0.0, exclusive_minimum=True), default=d.stop_velocity,
+                   help=f"rad/s: the arm has stopped where every arm joint becomes slower than this (default {d.stop_velocity}; "
+                        "PerAct/RVT use 0.1 on RLBench, which fires a step or three early at ManiSkill's 20 Hz)")
+    p.add_argument("--pause-velocity", type=number(0.0, exclusive_minimum=True), default=d.pause_velocity,
+                   help=f"rad/s: a stretch slower than this between two motions that never gets slower than --stop-velocity "
+                        f"is a keyframe at its slowest frame (default {d.pause_velocity})")
+    p.add_argument("--stop-buffer", type=NON_NEGATIVE, default=d.stop_buffer,
                    help=f"frames a rest keyframe blocks the next one (default {d.stop_buffer}, as the reference)")
-    p.add_argument("--obs-every", type=int, default=d.obs_every,
+    p.add_argument("--obs-every", type=COUNT, default=d.obs_every,
                    help=f"an observation start every N frames besides the keyframes (default {d.obs_every}, as the reference)")
     p.set_defaults(run=run)
 
@@ -31,7 +35,8 @@ def run(args) -> int:
     from rvt2cli.keyframes.extract import describe, extract_file
     from rvt2cli.keyframes.rule import KeyframeParams
 
-    params = KeyframeParams(stop_velocity=args.stop_velocity, stop_buffer=args.stop_buffer, obs_every=args.obs_every)
+    params = KeyframeParams(stop_velocity=args.stop_velocity, pause_velocity=args.pause_velocity, stop_buffer=args.stop_buffer,
+                            obs_every=args.obs_every)
     failed = []
     paths = episode_paths(args.files)
     for path in paths:

@@ -1,5 +1,7 @@
 """`rvt2 record`: scripted-expert demonstrations in ManiSkill/SAPIEN -> MCAP episodes."""
 
+from rvt2cli.cli.args import COUNT, SEED, integer, names, number
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -10,18 +12,19 @@ def register(subparsers) -> None:
     )
     p.add_argument("--task", help="task name (see --list-tasks)")
     p.add_argument("--list-tasks", action="store_true", help="print the known tasks and exit")
-    p.add_argument("--episodes", type=int, default=25, help="successful episodes to record (default 25)")
+    p.add_argument("--episodes", type=COUNT, default=25, help="successful episodes to record (default 25)")
     p.add_argument("--out", default="demos", help="output folder (default demos/)")
-    p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
-    p.add_argument("--workers", type=int, default=1, help="parallel simulator processes (default 1)")
-    p.add_argument("--cameras", help="comma-separated camera names (default: the task's rig; "
+    p.add_argument("--seed", type=SEED, default=0, help="first seed (default 0)")
+    p.add_argument("--workers", type=integer(1, 256), default=1, help="parallel simulator processes (default 1)")
+    p.add_argument("--cameras", type=names, help="comma-separated camera names (default: the task's rig; "
                                      "'front' alone is the paper's single-camera setting)")
-    p.add_argument("--image-size", type=int, help="camera resolution (default: the task's, 128)")
-    p.add_argument("--obs-every", type=int, default=10, help="render the cameras every N frames besides keyframes (default 10)")
-    p.add_argument("--voxel-size", type=float, help="downsample fused clouds to this voxel size in metres (default: no)")
+    p.add_argument("--image-size", type=integer(8, 2048), help="camera resolution (default: the task's, 128)")
+    p.add_argument("--obs-every", type=COUNT, default=10, help="render the cameras every N frames besides keyframes (default 10)")
+    p.add_argument("--voxel-size", type=number(0.0, exclusive_minimum=True), help="downsample fused clouds to this voxel size in metres (default: no)")
     p.add_argument("--store-clouds", action="store_true", help="also store the fused cloud (/points/world) for viewing in Foxglove")
     p.add_argument("--keep-failures", action="store_true", help="also keep episodes in which the expert failed")
-    p.add_argument("--max-attempts", type=int, help="give up after this many episodes (default 10 x --episodes + 10)")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--max-attempts", type=COUNT, help="give up after this many episodes (default 10 x --episodes + 10)")
     p.set_defaults(run=run)
 
 
@@ -37,22 +40,21 @@ def run(args) -> int:
     if not args.task:
         raise UserError("record needs --task NAME (see `rvt2 record --list-tasks`)")
     task = get_task(args.task)
-    cameras = None
-    if args.cameras:
-        cameras = tuple(c.strip() for c in args.cameras.split(",") if c.strip())
-        unknown = [c for c in cameras if c not in CAMERAS]
-        if unknown:
-            raise UserError(f"unknown camera(s) {', '.join(unknown)}; known cameras: {', '.join(CAMERAS)}")
-    if args.episodes < 1 or args.workers < 1 or args.obs_every < 1:
-        raise UserError("--episodes, --workers and --obs-every must be at least 1")
+    cameras = args.cameras or None
+    unknown = [c for c in cameras or () if c not in CAMERAS]
+    if unknown:
+        raise UserError(f"unknown camera(s) {', '.join(unknown)}; known cameras: {', '.join(CAMERAS)}")
 
     from tqdm import tqdm
 
+    from rvt2cli.atomic import ensure_folder
     from rvt2cli.record.recorder import RecordOptions, record
+
+    ensure_folder(args.out)  # before the progress bar: a bad --out is one line
 
     options = RecordOptions(cameras=cameras, image_size=args.image_size, obs_every=args.obs_every,
                             voxel_size=args.voxel_size, store_clouds=args.store_clouds, keep_failures=args.keep_failures)
-    bar = tqdm(total=args.episodes, unit="ep", desc=f"record {task.name}", dynamic_ncols=True)
+    bar = tqdm(total=args.episodes, unit="ep", desc=f"record {task.name}", dynamic_ncols=True, disable=args.no_progress)
 
     def on_result(result, summary):
         if result.success:

@@ -1,55 +1,78 @@
 """`rvt2 train`: train an RVT-2 policy on annotated episodes (also under torchrun for several GPUs)."""
 
+import argparse
+
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, SEED, integer, names, number
+
 
 def register(subparsers) -> None:
-    from rvt2cli.train.trainer import TrainOptions as T
+    from rvt2cli.train.options import TrainOptions as T
 
     p = subparsers.add_parser(
         "train", help="train a multi-task, language-conditioned RVT-2 policy on keyframe samples",
         description="Train RVT-2 on the keyframe samples of episode files (run `rvt2 extract-keyframes` first). "
-                    "Several GPUs: torchrun --nproc-per-node N -m rvt2cli train ...",
+                    "Several GPUs: torchrun --nproc-per-node N -m rvt2cli train ... "
+                    "--resume continues the run in --out with the options it was started with.",
+        argument_default=argparse.SUPPRESS,  # only the flags given: a resumed run takes the rest from the run
     )
-    p.add_argument("--data", nargs="+", required=True, metavar="PATH",
+    p.add_argument("--data", nargs="+", metavar="PATH",
                    help="episode files or folders of them, or one sample cache written by `rvt2 pack-samples`")
-    p.add_argument("--out", required=True, help="run folder (checkpoints, train.csv, tb/)")
-    p.add_argument("--config", default=T.config, help="model config: rvt2 (the paper), small (CPU), rvt (RVT-1-like ablation)")
-    p.add_argument("--steps", type=int, default=T.steps, help=f"optimizer steps (default {T.steps})")
-    p.add_argument("--batch-size", type=int, default=T.batch_size, help=f"per device (default {T.batch_size}, as the paper)")
-    p.add_argument("--lr", type=float, help="peak learning rate (default 1.25e-5 x total batch, as the paper)")
-    p.add_argument("--warmup", type=int, default=T.warmup, help=f"warmup steps, at most a tenth of --steps (default {T.warmup})")
-    p.add_argument("--max-points", type=int, default=T.max_points, help=f"points per cloud, subsampled/padded (default {T.max_points})")
-    p.add_argument("--no-augment", action="store_true", help="no translation/yaw augmentation (e.g. to overfit a tiny set)")
-    p.add_argument("--seed", type=int, default=T.seed)
-    p.add_argument("--device", default=T.device, help="auto (default), cpu, cuda, cuda:N")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    p.add_argument("--save-every", type=int, default=T.save_every)
-    p.add_argument("--val-every", type=int, default=T.val_every)
-    p.add_argument("--val-episodes", type=int, default=T.val_episodes, help="episodes held out per task for validation")
+    p.add_argument("--out", required=True, help="run folder (checkpoints, train.csv, validation.csv, tb/)")
+    p.add_argument("--config", help=f"model config: rvt2 (the paper, default), small (CPU), rvt (RVT-1-like ablation)")
+    p.add_argument("--steps", type=COUNT, help=f"optimizer steps (default {T.steps})")
+    p.add_argument("--batch-size", type=COUNT, help=f"per device (default {T.batch_size}, as the paper)")
+    p.add_argument("--lr", type=number(0.0, exclusive_minimum=True), help="peak learning rate (default 1.25e-5 x total batch, as the paper)")
+    p.add_argument("--warmup", type=NON_NEGATIVE, help=f"warmup steps, at most a tenth of --steps (default {T.warmup})")
+    p.add_argument("--max-points", type=integer(16), help=f"points per cloud, subsampled/padded (default {T.max_points})")
+    p.add_argument("--no-augment", dest="augment", action="store_false", help="no translation/yaw augmentation (e.g. to overfit a tiny set)")
+    p.add_argument("--seed", type=SEED, help=f"(default {T.seed})")
+    p.add_argument("--device", help="auto (default), cpu, cuda, cuda:N")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint, with its options")
+    p.add_argument("--save-every", type=COUNT, help=f"steps between checkpoints (default {T.save_every})")
+    p.add_argument("--val-every", type=COUNT, help=f"steps between validations (default {T.val_every})")
+    p.add_argument("--log-every", type=COUNT, help=f"steps between log rows (default {T.log_every})")
+    p.add_argument("--val-episodes", type=NON_NEGATIVE, help=f"episodes held out per task for validation (default {T.val_episodes})")
     p.add_argument("--include-failures", action="store_true", help="also train on episodes in which the expert failed")
-    p.add_argument("--episodes-per-task", type=int, metavar="N",
+    p.add_argument("--episodes-per-task", type=COUNT, metavar="N",
                    help="train on each task's first N episodes only (lowest seeds), e.g. 10 for the few-demo setting")
     p.add_argument("--keyframe-starts-only", action="store_true",
                    help="only samples observed at frame 0 or at a keyframe, not those every --obs-every frames in between")
-    p.add_argument("--no-amp", action="store_true", help="no bf16 autocast on CUDA")
+    p.add_argument("--cameras", type=names, help="fuse only these cameras' points, e.g. front (the single-camera setting)")
+    p.add_argument("--no-amp", dest="amp", action="store_false", help="no bf16 autocast on CUDA")
     p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU: ~1.5x faster after a minute of compiling)")
-    p.add_argument("--no-8bit", action="store_true", help="plain LAMB even when bitsandbytes is installed")
-    p.add_argument("--render-backend", default=T.render_backend, choices=["warp", "torch"])
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-8bit", dest="eight_bit", action="store_false", help="32-bit LAMB states on CUDA too")
+    p.add_argument("--render-backend", choices=["warp", "torch"])
+    p.add_argument("--no-progress", dest="progress", action="store_false")
     p.set_defaults(run=run)
 
 
-def run(args) -> int:
-    from rvt2cli.train.trainer import TrainOptions, train
+def options_from(args) -> "TrainOptions":  # noqa: F821 - imported lazily
+    """The run's options: the flags given, over the stored options of a resumed run or the defaults."""
+    from dataclasses import fields
+    from pathlib import Path
 
-    opts = TrainOptions(data=args.data, out=args.out, config=args.config, steps=args.steps, batch_size=args.batch_size,
-                        lr=args.lr, warmup=args.warmup, max_points=args.max_points, augment=not args.no_augment, seed=args.seed, device=args.device,
-                        resume=args.resume, save_every=args.save_every, val_every=args.val_every,
-                        val_episodes=args.val_episodes, include_failures=args.include_failures,
-                        episodes_per_task=args.episodes_per_task, keyframe_starts_only=args.keyframe_starts_only, amp=not args.no_amp, compile=args.compile,
-                        eight_bit=not args.no_8bit, render_backend=args.render_backend, progress=not args.no_progress)
-    result = train(opts)
+    from rvt2cli.errors import UserError
+    from rvt2cli.train.options import TrainOptions
+
+    given = {f.name: getattr(args, f.name) for f in fields(TrainOptions) if hasattr(args, f.name)}
+    if given.get("resume"):
+        from rvt2cli.train.trainer import stored_options
+
+        stored = stored_options(Path(args.out))
+        if stored is not None:
+            return TrainOptions(**{**stored.__dict__, **given})
+    if "data" not in given:
+        raise UserError("train needs --data (episode files or folders, or a sample cache)")
+    return TrainOptions(**given)
+
+
+def run(args) -> int:
+    from rvt2cli.train.trainer import train
+
+    result = train(options_from(args))
     v = result.last_validation
     print(f"trained {result.steps} steps in {result.seconds:.0f} s; checkpoint: {result.run_dir}/last"
-          + (f"; validation: {v['translation_mm']:.1f} mm, {v['rotation_deg']:.1f} deg, gripper {v['gripper_accuracy']:.0%}" if v else "")
+          + (f"; validation: stage-2 error {v['translation_mm_median']:.1f} mm median, {v['rotation_deg_median']:.1f} deg, "
+             f"gripper {v['gripper_accuracy']:.0%}" if v else "")
           + (f"; {result.skipped_steps} non-finite steps skipped" if result.skipped_steps else ""))
     return 0

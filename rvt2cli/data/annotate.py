@@ -12,12 +12,14 @@ from mcap.reader import make_reader
 
 from rvt2cli.atomic import atomic_open
 from rvt2cli.data import schemas, topics
+from rvt2cli.data.keyframes import KeyframeAnnotation
 from rvt2cli.data.reader import _check_readable, iter_raw_messages, read_metadata
 from rvt2cli.data.writer import McapChannels
 
 
-def write_keyframes(path: str | Path, keyframes: dict) -> None:
+def write_keyframes(path: str | Path, annotation: KeyframeAnnotation) -> None:
     path = Path(path)
+    keyframes = annotation.to_json()
     schemas.check(schemas.KEYFRAMES, keyframes, f"{path} keyframes")
     data = _check_readable(path)
     read_metadata(path, data)  # refuses foreign files and newer versions before anything is written

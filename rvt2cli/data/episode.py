@@ -4,6 +4,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from rvt2cli.robot import RobotFacts
+
 
 @dataclass
 class EpisodeMeta:
@@ -26,6 +28,11 @@ class EpisodeMeta:
 
     def to_json_obj(self) -> dict:
         return asdict(self)
+
+    @property
+    def robot(self) -> RobotFacts:
+        """Which joints are the arm and the fingers (stored in `extra["robot"]`)."""
+        return RobotFacts.from_json(self.extra.get("robot"))
 
 
 @dataclass

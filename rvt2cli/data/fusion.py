@@ -10,6 +10,29 @@ from scipy.spatial.transform import Rotation
 from rvt2cli.data.episode import CameraFrame, Cloud
 
 
+# rvt2's intrinsics (SAPIEN's) put pixel edges on integer image coordinates: pixel (row, col) is
+# sampled at (col + 0.5, row + 0.5). OpenCV and ROS put pixel centres there, so between the two
+# conventions the principal point moves by half a pixel.
+_HALF_PIXEL = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]])
+
+
+def intrinsic_from_opencv(K) -> np.ndarray:
+    """rvt2's K of a camera whose K follows OpenCV's (and ROS's) convention."""
+    return np.asarray(K, dtype=np.float64).reshape(3, 3) + _HALF_PIXEL
+
+
+def intrinsic_to_opencv(K) -> np.ndarray:
+    return np.asarray(K, dtype=np.float64).reshape(3, 3) - _HALF_PIXEL
+
+
+def depth_in_metres(depth: np.ndarray) -> np.ndarray:
+    """float32 metres from a depth image in metres (float) or millimetres (uint16, as RealSense gives it);
+    non-finite and non-positive values are 0 (no return)."""
+    depth = np.asarray(depth)
+    metres = depth.astype(np.float32) * np.float32(0.001) if depth.dtype == np.uint16 else depth.astype(np.float32)
+    return np.where(np.isfinite(metres) & (metres > 0), metres, np.float32(0.0)).astype(np.float32)
+
+
 def camera_points(cam: CameraFrame) -> Cloud:
     """Back-project every pixel with a depth return into the world frame.
 

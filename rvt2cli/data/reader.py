@@ -1,7 +1,7 @@
 """Read rvt2 episodes, with one clear error for every kind of bad file.
 
     ep = read_episode("demos/insert_peg_000.mcap")
-    ep.meta.task, ep.instruction, ep.robot.tcp_pose, ep.cloud(40), ep.cameras(40), ep.keyframes
+    ep.meta.task, ep.instruction, ep.robot.tcp_pose, ep.cloud(40), ep.cameras(40), ep.keyframes.keyframes
 
 The whole file is read into memory (an episode is a few MB); images and clouds are decoded on demand.
 """
@@ -24,6 +24,7 @@ from mcap.records import Message
 
 from rvt2cli.data import messages, schemas, topics
 from rvt2cli.data.episode import CameraFrame, Cloud, EpisodeMeta, RobotTrajectory
+from rvt2cli.data.keyframes import KeyframeAnnotation
 from rvt2cli.data.fusion import fuse
 from rvt2cli.errors import UserError
 
@@ -49,7 +50,7 @@ class Episode:
     meta: EpisodeMeta
     instruction: dict
     robot: RobotTrajectory
-    keyframes: dict | None
+    keyframes: KeyframeAnnotation | None   # None until `rvt2 extract-keyframes` has run
     channel_counts: dict[str, int]
     size_bytes: int
     _by_topic_frame: dict[tuple[str, int], bytes] = field(repr=False, default_factory=dict)
@@ -63,6 +64,11 @@ class Episode:
     @property
     def obs_frames(self) -> list[int]:
         return list(self.meta.obs_frames)
+
+    def require_keyframes(self) -> KeyframeAnnotation:
+        if self.keyframes is None:
+            raise UserError(f"{self.path}: no keyframes; run `rvt2 extract-keyframes {self.path.parent}/` first")
+        return self.keyframes
 
     def check_frame(self, frame: int) -> None:
         if not 0 <= frame < self.num_frames:
@@ -78,9 +84,13 @@ class Episode:
                 f"{_ranges(self.obs_frames)}"
             ) from None
 
-    def cloud(self, frame: int) -> Cloud:
-        """The fused world-frame cloud the policy sees at `frame` (from the stored RGB-D images)."""
-        return fuse(self.cameras(frame), self.meta.scene_bounds, self.meta.voxel_size)
+    def cloud(self, frame: int, cameras: tuple[str, ...] | None = None) -> Cloud:
+        """The fused world-frame cloud the policy sees at `frame` (from the stored RGB-D images of every
+        camera, or of the named ones)."""
+        frames = self.cameras(frame)
+        if cameras:
+            frames = {name: frames[name] for name in cameras}
+        return fuse(frames, self.meta.scene_bounds, self.meta.voxel_size)
 
     def stored_cloud(self, frame: int) -> Cloud:
         """The optional `/points/world` cloud written for viewing (`rvt2 record --store-clouds`)."""
@@ -246,7 +256,7 @@ def read_episode(path: str | Path) -> Episode:
             elif msg.topic == topics.INSTRUCTION:
                 instruction = obj
             else:
-                keyframes = obj
+                keyframes = KeyframeAnnotation.from_json(obj)
         elif msg.topic == topics.TCP_POSE:
             poses.append(messages.pose_from(_parse(PoseInFrame, msg.data, where)))
         elif msg.topic == topics.TF:

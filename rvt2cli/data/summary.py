@@ -19,8 +19,8 @@ def summarize(path: str | Path) -> dict:
         "expert": ep.meta.expert,
         "cameras": list(ep.meta.cameras),
         "obs_frames": len(ep.meta.obs_frames),
-        "keyframes": None if ep.keyframes is None else len(ep.keyframes["keyframes"]),
-        "samples": None if ep.keyframes is None else len(ep.keyframes["samples"]),
+        "keyframes": None if ep.keyframes is None else len(ep.keyframes.keyframes),
+        "samples": None if ep.keyframes is None else len(ep.keyframes.samples),
         "channels": dict(sorted(ep.channel_counts.items())),
         "size_bytes": ep.size_bytes,
     }

@@ -19,10 +19,9 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema as register_protobuf_schema
 
 from rvt2cli import __version__
-from rvt2cli.atomic import temp_path_for
+from rvt2cli.atomic import AtomicFile, output_error
 from rvt2cli.data import messages, schemas, topics
 from rvt2cli.data.episode import CameraFrame, Cloud, EpisodeMeta
-from rvt2cli.errors import UserError
 
 CHUNK_SIZE = 1 << 20
 
@@ -96,8 +95,11 @@ class EpisodeWriter:
     def __init__(self, path: str | os.PathLike, control_hz: float):
         self.path = Path(path)
         self.control_hz = control_hz
-        self._tmp = temp_path_for(self.path)
-        self._file = open(self._tmp, "wb")
+        self._target = AtomicFile(self.path)
+        try:
+            self._file = open(self._target.tmp, "wb")
+        except OSError as e:
+            raise output_error(self.path, e) from None
         self._mcap = McapChannels(self._file)
         self._obs_frames: list[int] = []
         self._num_frames = 0
@@ -157,22 +159,19 @@ class EpisodeWriter:
         try:
             self._mcap.write_episode_metadata(meta)
             self._mcap.finish()
-            self._file.flush()
-            os.fsync(self._file.fileno())
             self._file.close()
-            os.replace(self._tmp, self.path)
         except OSError as e:
             self.abort()
-            raise UserError(f"{self.path}: could not write the episode ({e.strerror}); nothing was kept") from None
+            raise output_error(self.path, e) from None
         except BaseException:
             self.abort()
             raise
-        return self.path
+        return self._target.commit()
 
     def abort(self) -> None:
         if not self._file.closed:
             self._file.close()
-        self._tmp.unlink(missing_ok=True)
+        self._target.discard()
 
     def __enter__(self):
         return self
@@ -181,5 +180,5 @@ class EpisodeWriter:
         if exc_type is not None or not self._file.closed:
             self.abort()
         if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-            raise UserError(f"{self.path}: disk full while writing; nothing was kept. Free some space and run again.") from None
+            raise output_error(self.path, exc) from None
         return False

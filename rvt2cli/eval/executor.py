@@ -1,74 +1,127 @@
-"""Reach a keyframe with the mplib motion planner, as RLBench's and the ManiSkill experts' executors do.
+"""Reach keyframes in the simulator: a motion planner for the way, a joint servo for the last millimetre.
 
-A keyframe is (TCP pose, gripper open, ignore collisions). The arm moves first, with the gripper as
-it is, along a screw motion (a straight line in pose space) or, if that fails, an RRTConnect path;
-then the gripper opens or closes. Unless the keyframe says to ignore collisions, both planners avoid
-the scene's point cloud (without the robot and the object in its hand). A pose the planners cannot
-reach is a failed step, not an error: the arm stays where it is.
+A keyframe (`rvt2cli.data.keyframes.Keyframe`) is a TCP pose, the gripper state to set there, and
+whether the motion into it may touch the scene. The executor
+1. plans the way with mplib, as RLBench's and the ManiSkill experts' executors do: a screw motion (a
+   straight line in pose space), or else an RRTConnect path; unless the keyframe says to ignore
+   collisions, both avoid the scene's point cloud (without the robot and the object in its hand);
+2. follows the path, with its end corrected to the exact inverse-kinematics solution of the target:
+   mplib integrates the screw motion open-loop in joint steps and ends 1-3 mm off the target, which is
+   as much as a peg's clearance. The correction is blended in along the path, so the motion stays smooth;
+3. servos in joint space until the TCP is at rest within `Tolerance` of the target: it holds the IK
+   solution and, where the arm rests elsewhere (an object in the hand, a contact), shifts the joint
+   command by the remaining joint error (integral action, bounded), for at most `SERVO_STEPS` steps.
+   A real Franka under Cartesian impedance control lands well under a millimetre; so does this;
+4. opens or closes the gripper.
+Every keyframe reports where the TCP came to rest (`Reach`). A pose the planners cannot reach is a
+failed step, not an error: nothing moves.
 
 Collision avoidance guards the way, not the ends: points within CLEAR_RADIUS of the gripper's start
 and goal are dropped, since grasping and placing end (and start) a finger's width from objects, which
 a point cloud of 5 mm resolution cannot tell from a collision. When no collision-free path is found
-at all, the executor plans once more without the cloud (counted as a collision fallback in the
-report): a point cloud cannot tell an object held by its thin edge from an obstacle.
+at all, the executor plans once more without the cloud (counted as a collision fallback): a point
+cloud cannot tell an object held by its thin edge from an obstacle.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rvt2cli.data.keyframes import Keyframe
+from rvt2cli.record.scene import tcp_pose
+from rvt2cli.robot import RobotFacts, planner_description
 
 GRIPPER_STEPS = 6          # control steps to open or close, as the experts do
-SETTLE_STEPS = 20          # at most this many extra steps holding the goal, until the arm is at rest
+SETTLE_STEPS = 20          # at most this many steps holding the goal until the arm is at rest (no servo needed)
+SERVO_STEPS = 40           # at most this many further steps of servoing onto the target
+MAX_SERVO_OFFSET = 0.05    # rad: the furthest the servo moves a joint command away from the IK solution
 # mplib integrates the screw motion open-loop in joint steps of this size; its default (0.1 rad) ends
-# ~1 cm off the goal, 0.01 rad ends within ~1 mm.
+# ~1 cm off the goal, 0.01 rad within a few mm (the IK correction removes the rest).
 SCREW_STEP = 0.01
+MAX_CORRECTION = 0.1       # rad: a larger IK correction of a path's end means another IK branch: not blended in
 REST_SPEED = 0.02          # rad/s: the keyframe rule's "at rest" (demo keyframes are where the arm stopped)
 COLLISION_RESOLUTION = 0.005  # m, radius of the collision points
 CLEAR_RADIUS = 0.06        # m, around the TCP at the start and the goal of a motion
 
 
 @dataclass(frozen=True)
-class KeyframeAction:
-    position: np.ndarray       # [3] world, m
-    quaternion: np.ndarray     # [4] xyzw
-    gripper_open: bool
-    ignore_collisions: bool
+class Tolerance:
+    """How close the TCP must come to rest to a keyframe before the servo stops."""
+
+    position_m: float = 0.0002
+    rotation_deg: float = 0.1
+
+
+@dataclass(frozen=True)
+class Reach:
+    """What became of one keyframe."""
+
+    reached: bool                       # False: no plan reached the pose, and nothing moved
+    position_error_mm: float | None     # where the TCP came to rest, against the target (None if not reached)
+    rotation_error_deg: float | None
+    planner: str                        # "screw", "rrt", or "none" (no plan)
+    collision_fallback: bool = False    # reached only by planning without the scene cloud
+    servo_steps: int = 0                # control steps spent servoing after the path
+
+    @staticmethod
+    def unreachable() -> "Reach":
+        return Reach(False, None, None, "none")
 
 
 class StepBudgetExhausted(Exception):
     pass
 
 
+def pose_error(pose7: np.ndarray, target: Keyframe) -> tuple[float, float]:
+    """(position error in m, rotation error in degrees) of a TCP pose [x y z qx qy qz qw] to a keyframe."""
+    position = float(np.linalg.norm(np.asarray(pose7[:3]) - np.asarray(target.position)))
+    rotation = Rotation.from_quat(pose7[3:]).inv() * Rotation.from_quat(target.quaternion)
+    return position, float(np.degrees(rotation.magnitude()))
+
+
 class Executor:
-    def __init__(self, env, step_budget: int, speed: float = 0.9, gripper_close: float = -1.0):
-        """`speed`: fraction of the Panda's joint velocity and acceleration limits; `gripper_close`: the
+    def __init__(self, env, step_budget: int, speed: float = 0.9, gripper_close: float = -1.0,
+                 tolerance: Tolerance = Tolerance()):
+        """`speed`: fraction of the robot's joint velocity and acceleration limits; `gripper_close`: the
         command that closes the gripper. Both as the task's expert uses them."""
         import mplib
 
         self.env = env
-        u = env.unwrapped
-        robot = u.agent.robot
-        self.robot = robot
-        self.planner = mplib.Planner(
-            urdf=u.agent.urdf_path, srdf=u.agent.urdf_path.replace(".urdf", ".srdf"),
-            user_link_names=[link.get_name() for link in robot.get_links()],
-            user_joint_names=[joint.get_name() for joint in robot.get_active_joints()],
-            move_group="panda_hand_tcp",
-        )
-        base = robot.pose.raw_pose[0].cpu().numpy()
-        self.planner.set_base_pose(base)
+        agent = env.unwrapped.agent
+        self.robot = agent.robot
+        self.facts = RobotFacts.from_agent(agent)
+        urdf, srdf = planner_description(agent)
+        self.joint_names = [joint.get_name() for joint in self.robot.get_active_joints()]
+        self.planner = mplib.Planner(urdf=urdf, srdf=srdf, user_link_names=[link.get_name() for link in self.robot.get_links()],
+                                     user_joint_names=self.joint_names, move_group=self.facts.tcp_link)
+        self.planner.set_base_pose(self.robot.pose.raw_pose[0].cpu().numpy())
         self.planner.joint_vel_limits = np.asarray(self.planner.joint_vel_limits) * speed
         self.planner.joint_acc_limits = np.asarray(self.planner.joint_acc_limits) * speed
-        self.time_step = u.control_timestep
+        self.arm = self.facts.indices(self.joint_names, self.facts.arm_joints)
+        self.fingers = self.facts.indices(self.joint_names, self.facts.finger_joints)
+        self.tcp_index = self.planner.link_name_2_idx[self.facts.tcp_link]
+        self.finger_mask = [i not in set(self.arm.tolist()) for i in range(len(self.joint_names))]
+        self.time_step = env.unwrapped.control_timestep
+        self.tolerance = tolerance
         self.gripper = 1.0  # open, as every episode starts
         self.gripper_close = gripper_close
         self.steps = 0
         self.step_budget = step_budget
-        self.collision_fallbacks = 0
         self.on_step = None  # called after every env.step (videos, rollout recording)
 
-    def _qpos(self) -> np.ndarray:
+    # --- the robot's state -------------------------------------------------------------------------
+    def qpos(self) -> np.ndarray:
         return self.robot.get_qpos()[0].cpu().numpy()
+
+    def finger_positions(self) -> np.ndarray:
+        return self.qpos()[self.fingers]
+
+    def tcp_pose(self) -> np.ndarray:
+        return tcp_pose(self.env).astype(np.float64)
+
+    def _at_rest(self) -> bool:
+        return float(np.abs(self.robot.get_qvel()[0].cpu().numpy()[self.arm]).max()) < REST_SPEED
 
     def _step(self, arm_qpos: np.ndarray) -> None:
         if self.steps >= self.step_budget:
@@ -78,54 +131,108 @@ class Executor:
         if self.on_step:
             self.on_step()
 
-    def plan(self, action: KeyframeAction, scene_points: np.ndarray | None) -> dict | None:
-        qx, qy, qz, qw = action.quaternion
-        target = np.concatenate([action.position, [qw, qx, qy, qz]])
-        avoid = not action.ignore_collisions and scene_points is not None and len(scene_points) > 0
+    # --- planning ------------------------------------------------------------------------------------
+    @staticmethod
+    def _mplib_pose(target: Keyframe) -> np.ndarray:
+        qx, qy, qz, qw = target.quaternion
+        return np.array([*target.position, qw, qx, qy, qz])
+
+    def plan(self, target: Keyframe, scene_points: np.ndarray | None) -> tuple[str, dict] | None:
+        """(planner name, mplib result) of a motion to the target, or None."""
+        goal = self._mplib_pose(target)
+        avoid = not target.ignore_collisions and scene_points is not None and len(scene_points) > 0
         if avoid:
-            start = self.env.unwrapped.agent.tcp.pose.p[0].cpu().numpy()
+            start = self.tcp_pose()[:3]
+            position = np.asarray(target.position)
             far = ((np.linalg.norm(scene_points - start, axis=1) > CLEAR_RADIUS)
-                   & (np.linalg.norm(scene_points - action.position, axis=1) > CLEAR_RADIUS))
+                   & (np.linalg.norm(scene_points - position, axis=1) > CLEAR_RADIUS))
             avoid = bool(far.any())
             if avoid:
                 self.planner.update_point_cloud(scene_points[far], radius=COLLISION_RESOLUTION)
-        for attempt in ("screw", "rrt"):
-            if attempt == "screw":
-                result = self.planner.plan_screw(target, self._qpos(), qpos_step=SCREW_STEP, time_step=self.time_step,
-                                                 use_point_cloud=avoid)
-            else:
-                result = self.planner.plan_qpos_to_pose(target, self._qpos(), time_step=self.time_step,
-                                                        use_point_cloud=avoid, wrt_world=True)
-            if result["status"] == "Success":
-                return result
+        result = self.planner.plan_screw(goal, self.qpos(), qpos_step=SCREW_STEP, time_step=self.time_step,
+                                         use_point_cloud=avoid)
+        if result["status"] == "Success":
+            return "screw", result
+        result = self.planner.plan_qpos_to_pose(goal, self.qpos(), time_step=self.time_step, use_point_cloud=avoid,
+                                                wrt_world=True)
+        if result["status"] == "Success":
+            return "rrt", result
         return None
 
-    def _follow(self, result: dict) -> None:
-        arm_joints = len(self.planner.move_group_joint_indices)
-        if len(result["position"]) == 0:  # already there (e.g. a gripper keyframe where the arm rests)
-            return
-        for qpos in result["position"]:
-            self._step(qpos[:arm_joints])
-        goal = result["position"][-1][:arm_joints]
-        for _ in range(SETTLE_STEPS):  # the PD controller lags the path: let the arm arrive
-            if np.abs(self.robot.get_qvel()[0, :arm_joints].cpu().numpy()).max() < REST_SPEED:
-                break
-            self._step(goal)
+    def inverse_kinematics(self, target: Keyframe, near: np.ndarray) -> np.ndarray | None:
+        """The arm joints that put the TCP exactly on the target, found from the full joint vector `near`
+        (closed-loop IK, deterministic); None if it does not converge within the joint limits."""
+        goal = self.planner.transform_goal_to_wrt_base(self._mplib_pose(target))
+        q, converged, _ = self.planner.pinocchio_model.compute_IK_CLIK(self.tcp_index, goal, near.astype(np.float64),
+                                                                         self.finger_mask)
+        limits = np.asarray(self.planner.joint_limits)[self.arm]
+        arm = q[self.arm]
+        if not converged or np.any(arm < limits[:, 0] - 1e-6) or np.any(arm > limits[:, 1] + 1e-6):
+            return None
+        return arm
 
-    def execute(self, action: KeyframeAction, scene_points: np.ndarray | None = None) -> bool:
-        """Move to the keyframe and set the gripper. False if no plan reaches the pose (nothing moves).
-        Raises StepBudgetExhausted when the episode's control steps run out."""
-        result = self.plan(action, scene_points)
-        if result is None and scene_points is not None and not action.ignore_collisions:
-            result = self.plan(action, None)
-            self.collision_fallbacks += result is not None
-        if result is None:
-            return False
-        self._follow(result)
-        target_gripper = 1.0 if action.gripper_open else self.gripper_close
-        if target_gripper != self.gripper:
-            self.gripper = target_gripper
-            hold = self._qpos()[:len(self.planner.move_group_joint_indices)]
+    # --- moving ----------------------------------------------------------------------------------------
+    def _follow(self, path: np.ndarray, goal: np.ndarray | None) -> np.ndarray:
+        """Step along the planned arm path [n, J], its end moved onto `goal` (blended in); returns the
+        final joint command."""
+        if len(path) == 0:  # already there (e.g. a gripper keyframe where the arm rests)
+            return goal if goal is not None else self.qpos()[self.arm]
+        if goal is not None and np.abs(goal - path[-1]).max() <= MAX_CORRECTION:
+            ramp = (np.arange(1, len(path) + 1) / len(path))[:, None]
+            path = path + ramp * (goal - path[-1])
+        for q in path:
+            self._step(q)
+        return path[-1]
+
+    def _servo(self, target: Keyframe, command: np.ndarray) -> tuple[np.ndarray, int]:
+        """Hold `command` until the arm rests; then, while the TCP rests off the target, shift the command
+        by the remaining joint error. Returns (the final command, servo steps spent)."""
+        for _ in range(SETTLE_STEPS):
+            if self._at_rest():
+                break
+            self._step(command)
+        goal = command.copy()
+        servo_steps, best, stalled = 0, np.inf, 0
+        while servo_steps < SERVO_STEPS and stalled < 3:
+            position, rotation = pose_error(self.tcp_pose(), target)
+            off = max(position / self.tolerance.position_m, rotation / self.tolerance.rotation_deg)  # 1 = at tolerance
+            if off <= 1.0:
+                break
+            if self._at_rest():
+                # a pose blocked by a contact does not come closer: stop pushing after three tries
+                stalled = stalled + 1 if off > 0.95 * best else 0
+                best = min(best, off)
+                offset = command - goal + (goal - self.qpos()[self.arm])
+                command = goal + np.clip(offset, -MAX_SERVO_OFFSET, MAX_SERVO_OFFSET)
+            self._step(command)
+            servo_steps += 1
+        return command, servo_steps
+
+    def _set_gripper(self, open_: bool, hold: np.ndarray) -> None:
+        command = 1.0 if open_ else self.gripper_close
+        if command != self.gripper:
+            self.gripper = command
             for _ in range(GRIPPER_STEPS):
                 self._step(hold)
-        return True
+
+    def execute(self, target: Keyframe, scene_points: np.ndarray | None = None) -> Reach:
+        """Move to the keyframe and set the gripper. An unreachable pose moves nothing.
+        Raises StepBudgetExhausted when the episode's control steps run out."""
+        planned = self.plan(target, scene_points)
+        fallback = False
+        if planned is None and scene_points is not None and not target.ignore_collisions:
+            planned = self.plan(target, None)
+            fallback = planned is not None
+        if planned is None:
+            return Reach.unreachable()
+        planner, result = planned
+        path = np.asarray(result["position"])[:, : len(self.arm)] if len(result["position"]) else np.zeros((0, len(self.arm)))
+        near = self.qpos().astype(np.float64)
+        if len(path):
+            near[self.arm] = path[-1]
+        goal = self.inverse_kinematics(target, near)
+        command = self._follow(path, goal)
+        command, servo_steps = self._servo(target, command)
+        position, rotation = pose_error(self.tcp_pose(), target)
+        self._set_gripper(target.gripper_open, command)
+        return Reach(True, position * 1000.0, rotation, planner, fallback, servo_steps)

@@ -28,9 +28,9 @@ def write_rollout(outcome, control_hz: float, path: Path) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         out = McapChannels(f)
         for i, step in enumerate(outcome.steps):
-            obj = {"index": i, "frame": step.frame, "position": [float(v) for v in step.action.position],
-                   "quaternion": [float(v) for v in step.action.quaternion], "gripper_open": step.action.gripper_open,
-                   "ignore_collisions": step.action.ignore_collisions, "reached": step.reached}
+            obj = {"index": i, "frame": step.frame, "position": list(step.keyframe.position),
+                   "quaternion": list(step.keyframe.quaternion), "gripper_open": step.keyframe.gripper_open,
+                   "ignore_collisions": step.keyframe.ignore_collisions, "reached": step.reached}
             t = frame_time_ns(step.frame, control_hz)
             out.write_json(PREDICTIONS_TOPIC, schemas.PREDICTION, obj, t)
         out.writer.add_metadata("rvt2.rollout", {"task": outcome.task, "seed": str(outcome.seed), "success": str(outcome.success),

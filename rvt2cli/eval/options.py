@@ -2,6 +2,8 @@
 
 from dataclasses import dataclass
 
+MAX_REPLANS = 3  # re-predictions after an unreachable keyframe, in a row, before an episode gives up
+
 
 @dataclass(frozen=True)
 class EvalOptions:
@@ -16,5 +18,13 @@ class EvalOptions:
     video: bool = False
     save_rollouts: bool = False
     keyframe_budget: int = 25
+    max_replans: int = MAX_REPLANS    # re-predictions after an unreachable keyframe, in a row
     out: str | None = None
     device: str = "cpu"
+    resume: bool = False              # continue the evaluation in `out` (its journal) instead of refusing it
+
+    def plan(self, checkpoint_path: str | None) -> dict:
+        """The options that decide which episodes run and how: a resumed evaluation must keep them."""
+        return {"checkpoint": checkpoint_path, "tasks": list(self.tasks), "episodes": self.episodes, "seed": self.seed,
+                "oracle": self.oracle, "demos": list(self.demos), "instruction": self.instruction,
+                "keyframe_budget": self.keyframe_budget, "max_replans": self.max_replans}

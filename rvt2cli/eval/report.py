@@ -1,11 +1,21 @@
-"""Evaluation reports: eval.json, eval.md and a bar chart of success per task (policy vs oracle)."""
+"""Evaluation reports: eval.json, eval.md and a bar chart of success per task (policy vs oracle).
+
+A report is built from episode records (`episode_record`), the same dicts the evaluation journal keeps
+one per line as episodes finish, so a report can be rebuilt from the journal of an interrupted run.
+Each record carries, per executed keyframe, where the TCP came to rest against its target: the report
+gives the median and p95 of those errors per task (the executor's precision) beside the success rates.
+"""
 
 import json
 import math
 from pathlib import Path
 
+import numpy as np
+
 from rvt2cli.atomic import atomic_open
 from rvt2cli.eval.rollout import FAILURE_KINDS, Outcome
+
+SOURCES = ("policy", "oracle")
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -18,54 +28,92 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def summarize(outcomes: list[Outcome]) -> dict:
-    n = len(outcomes)
-    wins = sum(o.success for o in outcomes)
+def episode_record(source: str, outcome: Outcome) -> dict:
+    """One finished episode as JSON: its outcome and every keyframe's reach."""
+    return {"source": source, "task": outcome.task, "seed": outcome.seed, "success": outcome.success,
+            "failure": outcome.failure, "keyframes": outcome.keyframes, "control_steps": outcome.control_steps,
+            "collision_fallbacks": outcome.collision_fallbacks, "unreached_keyframes": sum(not s.reached for s in outcome.steps),
+            "replans": outcome.replans, "instruction": outcome.instruction, "error": outcome.error,
+            "steps": [{"frame": s.frame, "reached": s.reach.reached, "retry": s.retry, "planner": s.reach.planner,
+                       "position_error_mm": s.reach.position_error_mm, "rotation_error_deg": s.reach.rotation_error_deg,
+                       "servo_steps": s.reach.servo_steps, "target": list(s.keyframe.pose),
+                       "gripper_open": s.keyframe.gripper_open, "ignore_collisions": s.keyframe.ignore_collisions}
+                      for s in outcome.steps]}
+
+
+def _percentiles(values: list[float]) -> dict:
+    if not values:
+        return {"median": None, "p95": None, "max": None}
+    a = np.asarray(values)
+    return {"median": float(np.median(a)), "p95": float(np.percentile(a, 95)), "max": float(a.max())}
+
+
+def summarize(records: list[dict]) -> dict:
+    n = len(records)
+    wins = sum(r["success"] for r in records)
     lo, hi = wilson_interval(wins, n)
+    reached = [s for r in records for s in r.get("steps", []) if s["reached"]]
     return {
         "episodes": n, "successes": wins, "success_rate": wins / n if n else 0.0, "ci95": [lo, hi],
-        "mean_keyframes": sum(o.keyframes for o in outcomes) / n if n else 0.0,
-        "failures": {kind: sum(o.failure == kind for o in outcomes) for kind in FAILURE_KINDS},
+        "mean_keyframes": sum(r["keyframes"] for r in records) / n if n else 0.0,
+        "failures": {kind: sum(r["failure"] == kind for r in records) for kind in FAILURE_KINDS},
+        "unreached_keyframes": sum(r["unreached_keyframes"] for r in records),
+        "replans": sum(r.get("replans", 0) for r in records),
+        "collision_fallbacks": sum(r["collision_fallbacks"] for r in records),
+        "pose_error": {"keyframes": len(reached),
+                       "position_mm": _percentiles([s["position_error_mm"] for s in reached]),
+                       "rotation_deg": _percentiles([s["rotation_error_deg"] for s in reached])},
     }
 
 
-def build_report(results: dict[str, dict[str, list[Outcome]]], meta: dict) -> dict:
-    """results[source][task] -> outcomes, source in {"policy", "oracle"}."""
-    tasks = sorted({t for per_task in results.values() for t in per_task})
-    report = {**meta, "tasks": {}, "episodes": []}
+def build_report(records: list[dict], meta: dict) -> dict:
+    """Per task and source (policy / oracle): success with its interval, failures, pose errors."""
+    records = sorted(records, key=lambda r: (SOURCES.index(r["source"]), r["task"], r["seed"]))
+    tasks = sorted({r["task"] for r in records})
+    sources = [s for s in SOURCES if any(r["source"] == s for r in records)]
+    report = {**meta, "tasks": {}, "episodes": records}
     for task in tasks:
-        report["tasks"][task] = {source: summarize(per_task[task]) for source, per_task in results.items() if task in per_task}
-    for source, per_task in results.items():
-        for outcomes in per_task.values():
-            for o in outcomes:
-                report["episodes"].append({"source": source, "task": o.task, "seed": o.seed, "success": o.success,
-                                           "failure": o.failure, "keyframes": o.keyframes, "control_steps": o.control_steps,
-                                           "collision_fallbacks": o.collision_fallbacks,
-                                           "unreached_keyframes": sum(not s.reached for s in o.steps),
-                                           "instruction": o.instruction, "error": o.error})
-    sources = list(results)
+        report["tasks"][task] = {s: summarize([r for r in records if r["task"] == task and r["source"] == s])
+                                 for s in sources if any(r["task"] == task and r["source"] == s for r in records)}
     if len(tasks) > 1:
         report["average"] = {s: sum(report["tasks"][t][s]["success_rate"] for t in tasks if s in report["tasks"][t]) / len(tasks)
                              for s in sources}
+    report["pose_error"] = {s: summarize([r for r in records if r["source"] == s])["pose_error"] for s in sources}
     return report
 
 
+def _mm(stats: dict) -> str:
+    return "-" if stats["median"] is None else f"{stats['median']:.2f} / {stats['p95']:.2f}"
+
+
 def markdown(report: dict) -> str:
-    sources = [s for s in ("policy", "oracle") if any(s in r for r in report["tasks"].values())]
-    head = "| task | " + " | ".join(f"{s} success (95% CI) | {s} keyframes" for s in sources) + " | policy failures |"
+    sources = [s for s in SOURCES if any(s in r for r in report["tasks"].values())]
+    head = ("| task | " + " | ".join(f"{s} success (95% CI) | {s} keyframes" for s in sources)
+            + " | policy failures | " + " | ".join(f"{s} error at rest, mm (median / p95) | {s} deg (median / p95)" for s in sources)
+            + " | policy unreached / replans |")
     lines = [f"# Evaluation: {report.get('checkpoint') or 'oracle only'}", "",
-             f"Seeds from {report['seed']}, {report['episodes_per_task']} episodes per task, keyframe budget {report['keyframe_budget']}.", "",
-             head, "|" + "---|" * (2 * len(sources) + 2)]
+             f"Seeds from {report['seed']}, {report['episodes_per_task']} episodes per task, keyframe budget {report['keyframe_budget']}."]
+    if report.get("untrained_tasks"):
+        lines += ["", f"Not in the checkpoint's training set (a generalisation test): {', '.join(report['untrained_tasks'])}."]
+    lines += ["", head, "|" + "---|" * (4 * len(sources) + 3)]
     for task, per in report["tasks"].items():
         cells = []
         for s in sources:
             r = per.get(s)
             cells += [f"{r['success_rate']:.0%} ({r['ci95'][0]:.0%}-{r['ci95'][1]:.0%}), n={r['episodes']}" if r else "-",
                       f"{r['mean_keyframes']:.1f}" if r else "-"]
-        fails = per.get("policy", {}).get("failures", {})
-        lines.append(f"| {task} | " + " | ".join(cells) + " | " + ", ".join(f"{k} {v}" for k, v in fails.items() if v) + " |")
+        policy = per.get("policy", {})
+        fails = ", ".join(f"{k} {v}" for k, v in policy.get("failures", {}).items() if v)
+        errors = []
+        for s in sources:
+            r = per.get(s)
+            errors += [_mm(r["pose_error"]["position_mm"]) if r else "-", _mm(r["pose_error"]["rotation_deg"]) if r else "-"]
+        unreached = f"{policy['unreached_keyframes']} / {policy['replans']}" if policy else "-"
+        lines.append(f"| {task} | " + " | ".join(cells) + f" | {fails} | " + " | ".join(errors) + f" | {unreached} |")
     if "average" in report:
         lines.append("| **average** | " + " | ".join(f"{report['average'].get(s, 0):.0%} | " for s in sources) + " |")
+    lines += ["", "Error at rest: distance between the TCP, once the arm has come to rest, and the keyframe's pose, "
+              "over every keyframe the executor reached."]
     return "\n".join(lines) + "\n"
 
 
@@ -76,13 +124,13 @@ def bar_chart(report: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     tasks = list(report["tasks"])
-    sources = [s for s in ("policy", "oracle") if any(s in r for r in report["tasks"].values())]
+    sources = [s for s in SOURCES if any(s in r for r in report["tasks"].values())]
     fig, ax = plt.subplots(figsize=(max(4, 1.2 * len(tasks) + 1), 3.5))
     width = 0.8 / len(sources)
     for i, s in enumerate(sources):
         rates = [report["tasks"][t].get(s, {}).get("success_rate", 0) for t in tasks]
-        err = [[r - report["tasks"][t].get(s, {"ci95": [0, 0]})["ci95"][0] for r, t in zip(rates, tasks)],
-               [report["tasks"][t].get(s, {"ci95": [0, 0]})["ci95"][1] - r for r, t in zip(rates, tasks)]]
+        intervals = [report["tasks"][t].get(s, {"ci95": [r, r]})["ci95"] for r, t in zip(rates, tasks)]
+        err = [[max(0.0, r - lo) for r, (lo, _) in zip(rates, intervals)], [max(0.0, hi - r) for r, (_, hi) in zip(rates, intervals)]]
         ax.bar([x + i * width for x in range(len(tasks))], rates, width, yerr=err, capsize=3, label=s)
     ax.set_xticks([x + width * (len(sources) - 1) / 2 for x in range(len(tasks))], tasks, rotation=30, ha="right")
     ax.set_ylim(0, 1.05)
@@ -95,7 +143,6 @@ def bar_chart(report: dict, path: Path) -> None:
 
 
 def write_report(report: dict, out_dir: Path) -> None:
-    out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_open(out_dir / "eval.json", "w") as f:
         json.dump(report, f, indent=2)
     with atomic_open(out_dir / "eval.md", "w") as f:

@@ -4,17 +4,24 @@ task's own success check passes or a budget runs out.
 Keyframes come from a `KeyframeSource`: the trained policy (`PolicySource`) or the ground truth
 (`OracleSource`: a recorded demo's keyframes, or the scripted expert's on the same seed), so the
 oracle measures the executor's ceiling with everything else the same.
+
+When a predicted keyframe cannot be reached (no plan gets there), nothing in the scene changes, and a
+deterministic policy would predict the same pose again until the budget is spent. Instead the source
+is asked again (`retry` 1, 2, ...): the policy re-predicts from a seeded, perturbed observation; the
+oracle has no alternative and moves on to its next keyframe. After `max_replans` unreachable
+re-predictions in a row the episode ends as a planning failure.
 """
 
-import random
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import torch
 
 from rvt2cli.data.fusion import fuse
-from rvt2cli.eval.executor import Executor, KeyframeAction, StepBudgetExhausted
+from rvt2cli.data.keyframes import Keyframe
+from rvt2cli.eval.executor import Executor, Reach, StepBudgetExhausted
+from rvt2cli.eval.options import MAX_REPLANS
 from rvt2cli.record.scene import capture_cameras, held_objects, segmentation_ids
+from rvt2cli.runtime import seed_everything
 from rvt2cli.tasks import Task
 
 FAILURE_KINDS = ("planning_failure", "budget_exhausted", "task_failed", "error")
@@ -25,8 +32,13 @@ class Step:
     """One keyframe prediction and what became of it."""
 
     frame: int              # control steps done before it
-    action: KeyframeAction
-    reached: bool           # False: no plan reached the pose
+    keyframe: Keyframe
+    reach: Reach
+    retry: int = 0          # 0: the source's first prediction for this state; n: its n-th re-prediction
+
+    @property
+    def reached(self) -> bool:
+        return self.reach.reached
 
 
 @dataclass
@@ -37,7 +49,6 @@ class Outcome:
     failure: str | None     # one of FAILURE_KINDS, None on success
     steps: list[Step] = field(default_factory=list)
     control_steps: int = 0
-    collision_fallbacks: int = 0   # keyframes reached only by planning without the scene cloud
     control_hz: float = 20.0
     instruction: str = ""
     error: str | None = None
@@ -47,13 +58,22 @@ class Outcome:
     def keyframes(self) -> int:
         return len(self.steps)
 
+    @property
+    def replans(self) -> int:
+        return sum(s.retry > 0 for s in self.steps)
+
+    @property
+    def collision_fallbacks(self) -> int:
+        return sum(s.reach.collision_fallback for s in self.steps)
+
 
 class KeyframeSource:
     def reset(self, task: Task, seed: int, instruction: str) -> None:
         raise NotImplementedError
 
-    def next(self, cloud, gripper_open: bool, finger_positions, keyframes_done: int) -> KeyframeAction | None:
-        """The next keyframe, or None when the source has nothing more to do."""
+    def next(self, cloud, gripper_open: bool, finger_positions, keyframes_done: int, retry: int = 0) -> Keyframe | None:
+        """The next keyframe, or None when the source has nothing (more) to offer. `retry` > 0 asks for
+        an alternative to the last keyframe, which could not be reached."""
         raise NotImplementedError
 
 
@@ -66,11 +86,10 @@ def _collision_points(env, frames, segmentation, bounds) -> np.ndarray:
 
 
 def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction: str, keyframe_budget: int = 25,
-                step_budget: int | None = None, video_every: int = 0) -> Outcome:
+                step_budget: int | None = None, video_every: int = 0, max_replans: int = MAX_REPLANS) -> Outcome:
+    seed_everything(seed)
     source.reset(task, seed, instruction)  # first: the oracle may run the expert on this seed
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
+    seed_everything(seed)
     env.reset(seed=seed)
     executor = Executor(env, step_budget or task.max_steps, task.planner_speed, task.gripper_close)
     outcome = Outcome(task=task.name, seed=seed, success=False, failure=None, instruction=instruction,
@@ -81,30 +100,31 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
                 outcome.video.append(np.asarray(env.render()[0].cpu().numpy(), dtype=np.uint8))
         executor.on_step = grab
         grab()
-    planning_failures = 0
+    retry, stuck = 0, False
     try:
-        for k in range(keyframe_budget):
+        while len(outcome.steps) < keyframe_budget:
             segmentation: dict = {}
             frames = capture_cameras(env, segmentation)
             cloud = fuse(frames, task.scene_bounds)
-            qpos = env.unwrapped.agent.robot.get_qpos()[0].cpu().numpy()
-            action = source.next(cloud, executor.gripper > 0, qpos[-2:], k)
-            if action is None:
+            keyframe = source.next(cloud, executor.gripper > 0, executor.finger_positions(), len(outcome.steps), retry)
+            if keyframe is None:
                 break
-            scene_points = None if action.ignore_collisions else _collision_points(env, frames, segmentation, task.scene_bounds)
+            scene_points = None if keyframe.ignore_collisions else _collision_points(env, frames, segmentation, task.scene_bounds)
             frame = executor.steps
-            reached = executor.execute(action, scene_points)
-            planning_failures += not reached
-            outcome.steps.append(Step(frame=frame, action=action, reached=reached))
+            reach = executor.execute(keyframe, scene_points)
+            outcome.steps.append(Step(frame=frame, keyframe=keyframe, reach=reach, retry=retry))
             if bool(env.unwrapped.evaluate()["success"].item()):
                 outcome.success = True
+                break
+            retry = 0 if reach.reached else retry + 1
+            if retry > max_replans:
+                stuck = True
                 break
     except StepBudgetExhausted:
         outcome.success = bool(env.unwrapped.evaluate()["success"].item())
     outcome.control_steps = executor.steps
-    outcome.collision_fallbacks = executor.collision_fallbacks
     if not outcome.success:
-        if planning_failures:
+        if stuck or any(not s.reached for s in outcome.steps):
             outcome.failure = "planning_failure"
         elif len(outcome.steps) >= keyframe_budget or executor.steps >= executor.step_budget:
             outcome.failure = "budget_exhausted"

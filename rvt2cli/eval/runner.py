@@ -1,18 +1,26 @@
 """`rvt2 eval`: episodes of every task on unseen seeds, for the policy and (optionally) the oracle,
-in parallel processes, deterministic per seed, with a report, videos and rollout files."""
+in parallel processes, deterministic per seed, with a report, videos and rollout files.
+
+Every finished episode goes into the journal at once (`rvt2cli.eval.journal`): a crashed simulator
+process costs the episodes it was running, not the finished ones, and `--resume` runs the rest.
+"""
 
 import multiprocessing
 import os
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rvt2cli.atomic import ensure_folder
 from rvt2cli.errors import UserError
-from rvt2cli.eval.options import EvalOptions
+from rvt2cli.eval.journal import NAME as JOURNAL_NAME
+from rvt2cli.eval.journal import Journal
 from rvt2cli.eval.media import write_rollout, write_video
-from rvt2cli.eval.report import build_report, write_report
+from rvt2cli.eval.options import EvalOptions
+from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
 from rvt2cli.tasks import get_task
 
@@ -28,7 +36,7 @@ class Job:
 class EvalResult:
     out_dir: Path
     report: dict
-    outcomes: list[tuple[Job, Outcome]] = field(default_factory=list)
+    outcomes: list[tuple[Job, Outcome]] = field(default_factory=list)   # the episodes this call ran
 
 
 # --- one process's simulator, policy and oracle -------------------------------------------------------
@@ -66,7 +74,7 @@ class _Worker:
             source = self.oracles.setdefault(task.name, OracleSource(env, self.demos))
         try:
             return run_episode(env, task, job.seed, source, instruction, self.opts.keyframe_budget,
-                               video_every=2 if self.opts.video else 0)
+                               video_every=2 if self.opts.video else 0, max_replans=self.opts.max_replans)
         except UserError:
             raise
         except Exception as e:  # noqa: BLE001 - a simulator crash costs this episode, not the run
@@ -109,8 +117,6 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict) -> li
         raise UserError("no tasks to evaluate: give --tasks (or a checkpoint, whose training tasks are the default)")
     for name in tasks:
         get_task(name)
-        if checkpoint_tasks and name not in checkpoint_tasks:
-            warnings.warn(f"task {name!r} is not in the checkpoint's training set ({', '.join(checkpoint_tasks)}); evaluating anyway")
     jobs = []
     for name in tasks:
         demo_seeds = sorted(seed for task, seed in demos if task == name)
@@ -122,31 +128,66 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict) -> li
     return jobs
 
 
+def untrained_tasks(opts: EvalOptions, checkpoint_tasks: list[str]) -> list[str]:
+    """Tasks asked for that the checkpoint never saw (allowed: a generalisation test; said once)."""
+    if not opts.checkpoint:
+        return []
+    return [t for t in opts.tasks if t not in checkpoint_tasks]
+
+
 def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
-    """Run every job; `on_start(number_of_episodes)` once the inputs are checked, `on_outcome(job,
-    outcome, finished)` after each episode (the CLI's progress bar)."""
+    """Run every job not yet in the journal; `on_start(number_of_episodes)` once the inputs are checked,
+    `on_outcome(job, outcome, finished)` after each episode (the CLI's progress bar)."""
     if not opts.checkpoint and not opts.oracle:
         raise UserError("eval needs --checkpoint (and/or --oracle)")
     checkpoint_tasks, checkpoint_path = [], None
     if opts.checkpoint:
-        from rvt2cli.train.checkpoint import load_checkpoint
+        from rvt2cli.train.checkpoint import load_policy
 
-        ckpt = load_checkpoint(opts.checkpoint)  # refuses missing or foreign checkpoints before any work
-        checkpoint_tasks, checkpoint_path = list(ckpt.info.get("tasks", [])), ckpt.path
+        _, ckpt = load_policy(opts.checkpoint)  # refuses missing, foreign or damaged checkpoints before any work
+        checkpoint_tasks, checkpoint_path = ckpt.tasks, str(ckpt.path)
     demos = _demo_seeds(opts.demos) if opts.demos else {}
     jobs = plan_jobs(opts, checkpoint_tasks, demos)
-    out_dir = Path(opts.out) if opts.out else (Path(opts.checkpoint) / "eval" if opts.checkpoint else Path("eval"))
+    untrained = untrained_tasks(opts, checkpoint_tasks)
+    if untrained:
+        warnings.warn(f"task(s) {', '.join(untrained)} not in the checkpoint's training set "
+                      f"({', '.join(checkpoint_tasks)}); evaluating anyway (noted in the report)")
+    out_dir = ensure_folder(Path(opts.out) if opts.out else (Path(opts.checkpoint) / "eval" if opts.checkpoint else Path("eval")))
+    journal = Journal(out_dir, opts.plan(checkpoint_path), opts.resume)
+    todo = [job for job in jobs if (job.source, job.task, job.seed) not in journal.finished]
     start = time.perf_counter()
     finished: list[tuple[Job, Outcome]] = []
     if on_start:
-        on_start(len(jobs))
+        on_start(len(todo))
 
     def done(job: Job, outcome: Outcome) -> None:
+        journal.append(episode_record(job.source, outcome))
         finished.append((job, outcome))
         _save_media(opts, out_dir, job, outcome)
         if on_outcome:
             on_outcome(job, outcome, finished)
 
+    def report() -> dict:
+        meta = {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
+                "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
+                "untrained_tasks": untrained, "seconds": time.perf_counter() - start}
+        result = build_report(journal.records, meta)
+        write_report(result, out_dir)
+        return result
+
+    try:
+        _run_jobs(opts, demos, todo, done)
+    except BrokenProcessPool as e:
+        report()
+        raise UserError(f"a simulator process died ({e}); the {len(journal.records)} finished episodes are kept in "
+                        f"{out_dir / JOURNAL_NAME} (report: {out_dir / 'eval.md'}); run the same command with --resume "
+                        "to run the rest") from None
+    return EvalResult(out_dir=out_dir, report=report(), outcomes=finished)
+
+
+def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
+    if not jobs:
+        return
     if opts.workers <= 1:
         import torch
 
@@ -158,19 +199,14 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
                 done(job, worker.run(job))
         finally:
             torch.set_num_threads(threads)
-    else:
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(opts.workers, mp_context=context, initializer=_init, initargs=(opts, demos)) as pool:
-            for job, outcome in zip(jobs, pool.map(_run, jobs)):
-                done(job, outcome)
-    results: dict[str, dict[str, list[Outcome]]] = {}
-    for job, outcome in finished:
-        results.setdefault(job.source, {}).setdefault(job.task, []).append(outcome)
-    report = build_report(results, {"checkpoint": str(checkpoint_path) if checkpoint_path else None, "seed": opts.seed,
-                                    "episodes_per_task": opts.episodes, "keyframe_budget": opts.keyframe_budget,
-                                    "instruction": opts.instruction, "seconds": time.perf_counter() - start})
-    write_report(report, out_dir)
-    return EvalResult(out_dir=out_dir, report=report, outcomes=finished)
+        return
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(opts.workers, mp_context=context, initializer=_init, initargs=(opts, demos)) as pool:
+        pending = {pool.submit(_run, job): job for job in jobs}
+        while pending:
+            completed, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in completed:
+                done(pending.pop(future), future.result())
 
 
 def _save_media(opts: EvalOptions, out_dir: Path, job: Job, outcome: Outcome) -> None:

@@ -4,17 +4,23 @@ import numpy as np
 import torch
 
 from rvt2cli.data import read_episode
-from rvt2cli.eval.executor import KeyframeAction
+from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.eval.rollout import KeyframeSource
 from rvt2cli.keyframes.extract import annotate, label_keyframes
 from rvt2cli.keyframes.rule import KeyframeParams
 from rvt2cli.model.language import InstructionCache
-from rvt2cli.model.policy import Observation
-from rvt2cli.model.rotation import bins_to_quaternion
-from rvt2cli.model.workspace import Workspace
+from rvt2cli.model.observation import Observation, observe, proprio_vector
+from rvt2cli.model.rotation import bins_to_quaternion, yaw_rotate_quaternion
+from rvt2cli.render.workspace import Workspace
 from rvt2cli.record.expert import run_expert
+from rvt2cli.robot import RobotFacts
 from rvt2cli.tasks import Task
-from rvt2cli.train.samples import proprio_vector
+from rvt2cli.train.augment import yaw_matrices
+
+# A re-prediction after an unreachable keyframe sees the scene shifted and turned by up to this much
+# (well inside the training augmentation of 12.5 cm and 45 degrees), and its prediction is mapped back.
+REPLAN_SHIFT_M = 0.03
+REPLAN_YAW_DEG = 10.0
 
 
 class PolicySource(KeyframeSource):
@@ -23,53 +29,66 @@ class PolicySource(KeyframeSource):
     def __init__(self, policy, checkpoint, device="cpu"):
         self.policy, self.device = policy, torch.device(device)
         self.cfg = policy.cfg
-        self.bounds = checkpoint.info.get("bounds", {})
+        self.checkpoint = checkpoint
         self.instructions = InstructionCache(self.cfg.lang_tokens, checkpoint.instruction_embeddings)
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
-        self.workspace = Workspace.from_bounds(self.bounds.get(task.name, task.scene_bounds))
-        self.lang = self.instructions([instruction]).to(self.device)
+        self.use(self.checkpoint.scene_bounds(task.name), self.instructions([instruction])[0])
+        self.seed = seed
 
-    def observation(self, cloud, gripper_open, finger_positions, keyframes_done) -> Observation:
-        """A world-frame cloud and the robot's state as the policy's input (batch of one, cube coordinates)."""
-        xyz = torch.from_numpy(cloud.xyz).to(self.device)[None]
-        return Observation(points=self.workspace.to_cube(xyz), rgb=torch.from_numpy(cloud.rgb).to(self.device)[None].float() / 255.0,
-                           num_points=torch.tensor([len(cloud)], device=self.device),
-                           proprio=torch.from_numpy(proprio_vector(gripper_open, finger_positions, keyframes_done)).to(self.device)[None],
-                           lang=self.lang)
+    def use(self, scene_bounds, lang: torch.Tensor) -> None:
+        """Observe the scene within these bounds, for this instruction's embedding [L, LANG_DIM]."""
+        self.workspace = Workspace.from_bounds(scene_bounds)
+        self.lang = lang
 
-    def next(self, cloud, gripper_open, finger_positions, keyframes_done) -> KeyframeAction:
-        pred = self.policy.predict(self.observation(cloud, gripper_open, finger_positions, keyframes_done))
+    def observation(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Observation:
+        return observe(xyz, rgb, proprio_vector(gripper_open, finger_positions, keyframes_done), self.lang,
+                       self.workspace, self.device)
+
+    def predict(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Keyframe:
+        pred = self.policy.predict(self.observation(xyz, rgb, gripper_open, finger_positions, keyframes_done))
         position = self.workspace.to_world(pred.position[0].double().cpu()).numpy()
         quaternion = bins_to_quaternion(pred.rot_bins[0].cpu().numpy(), self.cfg.rotation_bins)
-        return KeyframeAction(position=position, quaternion=quaternion, gripper_open=bool(pred.gripper_open[0]),
-                              ignore_collisions=bool(pred.ignore_collisions[0]))
+        return Keyframe.from_pose([*position, *quaternion], bool(pred.gripper_open[0]), bool(pred.ignore_collisions[0]))
 
-
-def _actions_from_annotation(keyframes: list[dict]) -> list[KeyframeAction]:
-    return [KeyframeAction(position=np.asarray(k["tcp_pose"][:3]), quaternion=np.asarray(k["tcp_pose"][3:]),
-                           gripper_open=k["gripper_open"], ignore_collisions=k["ignore_collisions"]) for k in keyframes]
+    def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry: int = 0) -> Keyframe:
+        if retry == 0:
+            return self.predict(cloud.xyz, cloud.rgb, gripper_open, finger_positions, keyframes_done)
+        # a seeded perturbation of the observation, undone on the prediction
+        g = np.random.default_rng([self.seed, keyframes_done, retry])
+        yaw = np.radians(g.uniform(-REPLAN_YAW_DEG, REPLAN_YAW_DEG))
+        shift = g.uniform(-REPLAN_SHIFT_M, REPLAN_SHIFT_M, size=3)
+        center = np.asarray(self.workspace.center)
+        turn = yaw_matrices(np.array([yaw]))[0]
+        xyz = ((cloud.xyz - center) @ turn.T + center + shift).astype(np.float32)
+        seen = self.predict(xyz, cloud.rgb, gripper_open, finger_positions, keyframes_done)
+        position = (np.asarray(seen.position) - shift - center) @ turn + center
+        quaternion = yaw_rotate_quaternion(np.asarray(seen.quaternion), np.array([-yaw]))[0]
+        return Keyframe.from_pose([*position, *quaternion], seen.gripper_open, seen.ignore_collisions)
 
 
 class OracleSource(KeyframeSource):
     """Ground-truth keyframes, whatever the observation: those of a recorded demo of this seed if one
-    was given, else those of the scripted expert run on the same seed (without rendering)."""
+    was given, else those of the scripted expert run on the same seed (without rendering). An
+    unreachable keyframe has no alternative: the oracle moves on to its next one."""
 
     def __init__(self, env, demos: dict[tuple[str, int], str] | None = None, params: KeyframeParams = KeyframeParams()):
         self.env, self.demos, self.params = env, demos or {}, params
 
-    def keyframes(self, task: Task, seed: int) -> list[KeyframeAction]:
+    def keyframes(self, task: Task, seed: int) -> list[Keyframe]:
         demo = self.demos.get((task.name, seed))
         if demo is not None:
             ep = read_episode(demo)
-            return _actions_from_annotation(ep.keyframes["keyframes"] if ep.keyframes else annotate(ep, self.params).keyframes["keyframes"])
+            return list((ep.keyframes or annotate(ep, self.params).keyframes).keyframes)
         frames = run_expert(self.env, task.expert, seed, max_frames=task.max_steps).frames
-        _, entries = label_keyframes([f.gripper_command for f in frames], np.array([f.state["joint_velocities"] for f in frames]),
-                                     [f.contacts for f in frames], [f.state["tcp_pose"] for f in frames], self.params)
-        return _actions_from_annotation(entries)
+        facts = RobotFacts.from_agent(self.env.unwrapped.agent)
+        names = frames[0].state["joint_names"]
+        arm_velocities = facts.arm(np.array([f.state["joint_velocities"] for f in frames]), names)
+        return label_keyframes([f.gripper_command for f in frames], arm_velocities, [f.contacts for f in frames],
+                               [f.state["tcp_pose"] for f in frames], self.params)
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
         self.queue = self.keyframes(task, seed)  # runs the expert, which resets the scene itself
 
-    def next(self, cloud, gripper_open, finger_positions, keyframes_done):
+    def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry: int = 0):
         return self.queue[keyframes_done] if keyframes_done < len(self.queue) else None

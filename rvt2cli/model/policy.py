@@ -3,7 +3,7 @@
 Stage 1 renders the scene cube from fixed virtual views and predicts a heatmap per view; the 3D point
 the heatmaps agree on is where stage 2 zooms in (training: the true target plus noise). Stage 2
 re-renders the cloud around that point, predicts the final point, and the action head reads the
-stage-2 features at that point. Inputs and outputs are in the normalised scene cube (see Workspace).
+stage-2 features at that point. Inputs (`rvt2cli.model.observation`) and outputs are in the normalised scene cube.
 """
 
 import math
@@ -17,22 +17,11 @@ from rvt2cli.model.config import ModelConfig
 from rvt2cli.model.heatmap import make_heatmap_head
 from rvt2cli.model.locate import heatmaps_to_point
 from rvt2cli.model.mvt import MultiViewTransformer
+from rvt2cli.model.observation import Observation
 from rvt2cli.render.cameras import Cameras, cube_rig, project, zoom_rig
 from rvt2cli.render.channels import network_images
 
 MAX_SPLAT_PX = 8  # the renderer's default cap on a disc's radius
-
-
-@dataclass
-class Observation:
-    points: torch.Tensor      # [B, N, 3] cube coordinates (padded; see num_points)
-    rgb: torch.Tensor         # [B, N, 3] in [0, 1]
-    num_points: torch.Tensor  # [B] valid points per cloud
-    proprio: torch.Tensor     # [B, proprio_dim]
-    lang: torch.Tensor        # [B, L, 384]
-
-    def to(self, device) -> "Observation":
-        return Observation(*(t.to(device, non_blocking=True) for t in (self.points, self.rgb, self.num_points, self.proprio, self.lang)))
 
 
 @dataclass

@@ -3,13 +3,13 @@
 import contextlib
 import importlib
 import io
-import random
 from dataclasses import dataclass, field
 
 import gymnasium as gym
 import numpy as np
 
 from rvt2cli.record.scene import robot_contacts, robot_state, sim_state
+from rvt2cli.runtime import seed_everything
 
 
 class EpisodeTooLong(Exception):
@@ -70,8 +70,7 @@ def load_expert(spec: str):
 
 def run_expert(env, expert_spec: str, seed: int, max_frames: int) -> ExpertRun:
     """Reset the scene with `seed` and let the expert solve it, recording every frame."""
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
+    seed_everything(seed)
     recorder = RecordingWrapper(env, max_frames)
     run = ExpertRun(seed=seed)
     try:

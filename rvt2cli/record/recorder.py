@@ -16,11 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
+from rvt2cli.atomic import ensure_folder
 from rvt2cli.data import EpisodeMeta, EpisodeWriter
 from rvt2cli.data.fusion import fuse
 from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.record.expert import ExpertRun, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
+from rvt2cli.robot import RobotFacts
 from rvt2cli.tasks import Task, get_task
 
 
@@ -57,18 +59,20 @@ def software_versions() -> dict[str, str]:
     return {name: version(name) for name in ("rvt2", "mani-skill", "sapien", "mplib", "numpy")}
 
 
-def observation_frames(run: ExpertRun, obs_every: int) -> list[int]:
-    n = len(run.frames)
-    gripper_open = np.array([f.gripper_command > 0 for f in run.frames])
-    velocities = np.array([f.state["joint_velocities"] for f in run.frames])
-    keyframes = find_keyframes(gripper_open, velocities, KeyframeParams(obs_every=obs_every))
-    return sorted(set(range(0, n, obs_every)) | {k.frame for k in keyframes} | {n - 1})
+def observation_frames(num_frames: int, gripper_open, arm_velocities, obs_every: int) -> list[int]:
+    """The frames whose images an episode stores: frame 0, every `obs_every`-th frame, every keyframe of
+    the default rule and the last frame (`rvt2 record` and `rvt2 import-rosbag` alike). `gripper_open`
+    [T] and `arm_velocities` [T, J] are the dense trajectory's, as `find_keyframes` takes them."""
+    keyframes = find_keyframes(np.asarray(gripper_open, dtype=bool), np.asarray(arm_velocities),
+                               KeyframeParams(obs_every=obs_every))
+    return sorted(set(range(0, num_frames, obs_every)) | {k.frame for k in keyframes} | {num_frames - 1})
 
 
 def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOptions) -> Path:
     control_hz = float(env.unwrapped.control_freq)
     instruction, template_index = task.instruction(run.seed)
     cameras = list(env.rvt2_cameras)
+    robot = RobotFacts.from_agent(env.unwrapped.agent)
     with EpisodeWriter(path, control_hz) as writer:
         writer.write_instruction(instruction, task.name, template_index, dict(task.variables))
         for t, frame in enumerate(run.frames):
@@ -76,7 +80,9 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
                                joint_velocities=frame.state["joint_velocities"], gripper_width=frame.state["gripper_width"],
                                gripper_command=frame.gripper_command, action=frame.action, contacts=frame.contacts,
                                tcp_pose=frame.state["tcp_pose"], sim_state=frame.sim)
-        for t in observation_frames(run, options.obs_every):
+        gripper_open = [f.gripper_command > 0 for f in run.frames]
+        arm_velocities = robot.arm(np.array([f.state["joint_velocities"] for f in run.frames]), run.frames[0].state["joint_names"])
+        for t in observation_frames(len(run.frames), gripper_open, arm_velocities, options.obs_every):
             restore_sim_state(env, run.frames[t].sim)
             images = capture_cameras(env)
             cloud = fuse(images, task.scene_bounds, options.voxel_size) if options.store_clouds else None
@@ -85,7 +91,8 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
             task=task.name, env_id=task.env_id, seed=run.seed, success=run.success, expert=task.expert,
             num_frames=len(run.frames), control_hz=control_hz, scene_bounds=list(task.scene_bounds), cameras=cameras,
             instruction=instruction, versions=software_versions(), obs_frames=writer.obs_frames,
-            voxel_size=options.voxel_size, extra={"image_size": int(options.image_size or task.image_size), "status": run.status},
+            voxel_size=options.voxel_size, extra={"image_size": int(options.image_size or task.image_size), "status": run.status,
+                                                  "robot": robot.to_json()},
         )
         return writer.finish(meta)
 
@@ -153,8 +160,7 @@ def record(task_name: str, episodes: int, out_dir: str | Path, seed: int = 0, wo
     """Record `episodes` successful episodes (seeds from `seed` upwards). `on_result(result, summary)`
     is called for every attempt in seed order (the CLI's progress bar)."""
     task = get_task(task_name)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = ensure_folder(out_dir)
     max_attempts = max_attempts or 10 * episodes + 10
     summary = RecordSummary(task=task.name, requested=episodes)
     start = time.perf_counter()

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from rvt2cli.data import CameraFrame
 from rvt2cli.record.cameras import camera_configs
-from rvt2cli.runtime import use_software_vulkan_if_unset
+from rvt2cli.runtime import use_vulkan_driver
 from rvt2cli.tasks import Task
 
 FINGER_LINKS = ("panda_leftfinger", "panda_rightfinger")
@@ -22,7 +22,7 @@ MIN_HELD_WIDTH = 0.005  # m: fingers closer than this hold nothing (a closed gri
 
 def make_env(task: Task, cameras=None, image_size: int | None = None):
     """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras."""
-    use_software_vulkan_if_unset()
+    use_vulkan_driver()
     import mani_skill.envs  # noqa: F401 - registers the environments
     from mani_skill.utils.logging_utils import logger as mani_skill_logger
 

@@ -14,7 +14,8 @@ def sample_augmentation(n: int, generator: torch.Generator, max_translation: flo
     return yaw.numpy(), translation.numpy()
 
 
-def _yaw_matrices(yaw: np.ndarray) -> np.ndarray:
+def yaw_matrices(yaw: np.ndarray) -> np.ndarray:
+    """[n] angles (rad) -> [n, 3, 3] rotations about the vertical axis."""
     c, s = np.cos(yaw), np.sin(yaw)
     m = np.zeros((len(yaw), 3, 3))
     m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1], m[:, 2, 2] = c, -s, s, c, 1.0
@@ -25,7 +26,7 @@ def augment_targets(position: np.ndarray, quaternion: np.ndarray, center: np.nda
                     yaw: np.ndarray, translation: np.ndarray):
     """Rotate and shift targets [n, 3] / [n, 4]; returns (position, quaternion, yaw, translation) where a
     yaw that would push a target out of the workspace is dropped and translations are clamped."""
-    rotated = np.einsum("nij,nj->ni", _yaw_matrices(yaw), position - center) + center
+    rotated = np.einsum("nij,nj->ni", yaw_matrices(yaw), position - center) + center
     outside = np.any((rotated < lo) | (rotated > hi), axis=1)
     yaw = np.where(outside, 0.0, yaw)
     rotated = np.where(outside[:, None], position, rotated)
@@ -33,8 +34,7 @@ def augment_targets(position: np.ndarray, quaternion: np.ndarray, center: np.nda
     return rotated + translation, yaw_rotate_quaternion(quaternion, yaw), yaw, translation
 
 
-def augment_points(xyz: torch.Tensor, center: torch.Tensor, yaw: np.ndarray, translation: np.ndarray) -> torch.Tensor:
-    """xyz [B, N, 3] world points -> the same rotation about `center` [B, 3] and translation."""
-    rot = torch.as_tensor(_yaw_matrices(yaw), dtype=xyz.dtype, device=xyz.device)
-    shift = torch.as_tensor(translation, dtype=xyz.dtype, device=xyz.device)
-    return torch.einsum("bij,bnj->bni", rot, xyz - center[:, None]) + center[:, None] + shift[:, None]
+def augment_points(xyz: torch.Tensor, center: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+    """xyz [B, N, 3] world points -> rotated by `rotation` [B, 3, 3] about `center` [B, 3], then shifted
+    by `translation` [B, 3] (all on xyz's device)."""
+    return torch.einsum("bij,bnj->bni", rotation, xyz - center[:, None]) + center[:, None] + translation[:, None]

@@ -1,7 +1,9 @@
 """Samples packed into tensors (on the training device), task-uniform sampling, and batches.
 
 Clouds are padded (or randomly subsampled) to `max_points` so every batch has the same shape; the
-renderer ignores the padding through `num_points`.
+renderer ignores the padding through `num_points`. A batch's small host-side arrays (indices,
+targets, augmentation) reach the GPU through pinned memory without blocking the host, so the host
+prepares the next batch while the GPU still runs the current step.
 """
 
 from dataclasses import dataclass
@@ -10,10 +12,10 @@ import numpy as np
 import torch
 
 from rvt2cli.model.config import ModelConfig
-from rvt2cli.model.policy import Observation
+from rvt2cli.model.observation import Observation, colours, fit_points
 from rvt2cli.model.rotation import quaternion_to_bins
-from rvt2cli.model.workspace import Workspace
-from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation
+from rvt2cli.render.workspace import Workspace
+from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation, yaw_matrices
 from rvt2cli.train.samples import SampleSet
 
 
@@ -24,8 +26,9 @@ class PackedSamples:
     count: torch.Tensor        # [S]
     proprio: torch.Tensor      # [S, P]
     instruction: torch.Tensor  # [S] index into lang
-    lang: torch.Tensor         # [U, L, 384]
+    lang: torch.Tensor         # [U, L, LANG_DIM]
     task: np.ndarray           # [S]
+    keyframe_index: np.ndarray  # [S] which keyframe of its episode the target is (-1: unknown)
     target_position: np.ndarray    # [S, 3] world
     target_quaternion: np.ndarray  # [S, 4] xyzw
     target_gripper: np.ndarray     # [S] 1 = open
@@ -46,19 +49,17 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
     rgb = np.zeros((n, max_points, 3), np.uint8)
     count = np.zeros(n, np.int64)
     for row, i in enumerate(indices):
-        points, colours = samples.xyz[i], samples.rgb[i]
-        if len(points) > max_points:
-            keep = np.sort(rng.choice(len(points), max_points, replace=False))
-            points, colours = points[keep], colours[keep]
-        xyz[row, : len(points)], rgb[row, : len(points)], count[row] = points, colours, len(points)
+        xyz[row], rgb[row], count[row] = fit_points(samples.xyz[i], samples.rgb[i], max_points, rng)
     workspaces = [Workspace.from_bounds(samples.bounds[t]) for t in samples.tasks]
     pick = np.asarray(indices, dtype=np.int64)
+    keyframe_index = np.asarray(samples.keyframe_index if samples.keyframe_index else [-1] * len(samples), np.int64)
     return PackedSamples(
         xyz=torch.from_numpy(xyz).to(device), rgb=torch.from_numpy(rgb).to(device), count=torch.from_numpy(count).to(device),
         proprio=torch.from_numpy(np.stack([samples.proprio[i] for i in indices])).to(device),
         instruction=torch.as_tensor([samples.instruction_index[i] for i in indices], device=device),
         lang=lang.to(device),
         task=np.asarray(samples.task_index)[pick],
+        keyframe_index=keyframe_index[pick],
         target_position=np.stack([samples.target_position[i] for i in indices]).astype(np.float64),
         target_quaternion=np.stack([samples.target_quaternion[i] for i in indices]),
         target_gripper=np.asarray(samples.target_gripper_open, np.int64)[pick],
@@ -92,6 +93,14 @@ class Batch:
     stage2_center: torch.Tensor | None = None
 
 
+def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A host array on the device; to a GPU through pinned memory, without waiting for it."""
+    tensor = torch.from_numpy(np.ascontiguousarray(array))
+    if device.type != "cuda":
+        return tensor
+    return tensor.pin_memory().to(device, non_blocking=True)
+
+
 def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generator: torch.Generator | None = None,
                max_translation: float = 0.125, max_yaw_deg: float = 45.0) -> Batch:
     """A batch of samples `idx`; with a generator, augmented and with a noisy stage-2 centre (training)."""
@@ -99,24 +108,25 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
     tasks = packed.task[idx]
     center, half, lo, hi = packed.center[tasks], packed.half[tasks], packed.lo[tasks], packed.hi[tasks]
     position, quaternion = packed.target_position[idx], packed.target_quaternion[idx]
-    xyz = packed.xyz[torch.as_tensor(idx, device=device)]
-    center_t = torch.as_tensor(center, dtype=torch.float32, device=device)
+    index = to_device(np.asarray(idx, np.int64), device)
+    xyz = packed.xyz[index]
+    center_t = to_device(center.astype(np.float32), device)
     if generator is not None:
         yaw, shift = sample_augmentation(len(idx), generator, max_translation, max_yaw_deg)
         position, quaternion, yaw, shift = augment_targets(position, quaternion, center, lo, hi, yaw, shift)
-        xyz = augment_points(xyz, center_t, yaw, shift)
-    half_t = torch.as_tensor(half, dtype=torch.float32, device=device)[:, None, None]
+        xyz = augment_points(xyz, center_t, to_device(yaw_matrices(yaw).astype(np.float32), device),
+                             to_device(shift.astype(np.float32), device))
+    half_t = to_device(half.astype(np.float32), device)[:, None, None]
     points = (xyz - center_t[:, None]) / half_t
-    index = torch.as_tensor(idx, device=device)
-    obs = Observation(points=points, rgb=packed.rgb[index].float() / 255.0, num_points=packed.count[index],
+    obs = Observation(points=points, rgb=colours(packed.rgb[index]), num_points=packed.count[index],
                       proprio=packed.proprio[index], lang=packed.lang[packed.instruction[index]])
-    position_cube = torch.as_tensor((position - center) / half[:, None], dtype=torch.float32, device=device)
-    batch = Batch(obs=obs, position=position_cube,
-                  rot_bins=torch.as_tensor(quaternion_to_bins(quaternion, cfg.rotation_bins), device=device),
-                  gripper=torch.as_tensor(packed.target_gripper[idx], device=device),
-                  collision=torch.as_tensor(packed.target_collision[idx], device=device),
+    position_cube = ((position - center) / half[:, None]).astype(np.float32)
+    batch = Batch(obs=obs, position=to_device(position_cube, device),
+                  rot_bins=to_device(quaternion_to_bins(quaternion, cfg.rotation_bins), device),
+                  gripper=to_device(packed.target_gripper[idx], device),
+                  collision=to_device(packed.target_collision[idx], device),
                   quaternion=quaternion, half=half)
     if generator is not None and cfg.stages == 2:
         noise = (torch.rand(len(idx), 3, generator=generator, dtype=torch.float64).numpy() * 2 - 1) * cfg.stage2_noise
-        batch.stage2_center = position_cube + torch.as_tensor(noise / half[:, None], dtype=torch.float32, device=device)
+        batch.stage2_center = to_device((position_cube + (noise / half[:, None]).astype(np.float32)), device)
     return batch

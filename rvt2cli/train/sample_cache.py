@@ -12,7 +12,7 @@ scene bounds (every fused point lies inside them), a step of at most 1/65535 of 
     rgb       [3, P] uint8
     offsets   [S + 1] int64   sample s owns points offsets[s]:offsets[s + 1]
     proprio, target_position, target_quaternion, target_gripper_open, target_ignore_collisions,
-    task_index, instruction_index, episode_index, keyframe_start   [S, ...] per sample
+    task_index, instruction_index, episode_index, keyframe_start, keyframe_index   [S, ...] per sample
     lang      [U, L, 384] float32   token embeddings of info["instructions"], in that order
 """
 
@@ -25,11 +25,11 @@ from safetensors import SafetensorError, safe_open
 from safetensors.numpy import load_file, save_file
 
 from rvt2cli import __version__
-from rvt2cli.atomic import atomic_path
+from rvt2cli.atomic import atomic_path, ensure_folder
 from rvt2cli.errors import UserError
 from rvt2cli.train.samples import SampleSet, load_samples, select_samples
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: keyframe_index per sample (format 1 files read with keyframe_index -1, "unknown")
 KEY = "rvt2_sample_cache"
 LEVELS = 65535
 
@@ -83,6 +83,7 @@ def save_sample_cache(samples: SampleSet, embeddings: dict[str, torch.Tensor], p
         "instruction_index": np.asarray(samples.instruction_index, np.int64),
         "episode_index": np.asarray(samples.episode_index, np.int64),
         "keyframe_start": np.asarray(samples.keyframe_start, np.uint8),
+        "keyframe_index": np.asarray(samples.keyframe_index, np.int64),
         "lang": torch.stack([embeddings[t] for t in samples.instructions]).float().numpy(),
     }
     info = {"tasks": samples.tasks, "instructions": samples.instructions, "bounds": samples.bounds, "rigs": samples.rigs,
@@ -93,7 +94,8 @@ def save_sample_cache(samples: SampleSet, embeddings: dict[str, torch.Tensor], p
 
 
 def pack_sample_cache(data: list[str], out: str | Path, episodes_per_task: int | None = None,
-                      keyframe_starts_only: bool = False, include_failures: bool = False, progress: bool = True) -> str:
+                      keyframe_starts_only: bool = False, include_failures: bool = False, progress: bool = True,
+                      cameras: tuple[str, ...] | None = None) -> str:
     """Load the episodes' samples, keep the selected ones, embed their instructions and save them to `out`."""
     from rvt2cli.data.paths import episode_paths
     from rvt2cli.model.config import CONFIGS
@@ -101,7 +103,9 @@ def pack_sample_cache(data: list[str], out: str | Path, episodes_per_task: int |
 
     out = Path(out)
     _require_cache_name(out)  # before minutes of loading
-    samples = load_samples(episode_paths(data), include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only)
+    ensure_folder(out.parent)
+    samples = load_samples(episode_paths(data), include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only,
+                           cameras=cameras)
     samples = samples.subset(select_samples(samples, episodes_per_task))
     cache = InstructionCache(max(c.lang_tokens for c in CONFIGS.values()))  # every config takes a prefix
     cache(samples.instructions)
@@ -129,6 +133,7 @@ def load_sample_cache(path: str | Path) -> tuple[SampleSet, dict[str, torch.Tens
     samples = SampleSet(tasks=info["tasks"], instructions=info["instructions"], bounds=info["bounds"], rigs=info["rigs"],
                         episodes=info["episodes"])
     offsets = tensors["offsets"]
+    keyframe_index = tensors.get("keyframe_index", np.full(len(offsets) - 1, -1, np.int64))
     for i in range(len(offsets) - 1):
         task = samples.tasks[int(tensors["task_index"][i])]
         b = np.asarray(samples.bounds[task], np.float64)
@@ -144,5 +149,6 @@ def load_sample_cache(path: str | Path) -> tuple[SampleSet, dict[str, torch.Tens
         samples.instruction_index.append(int(tensors["instruction_index"][i]))
         samples.episode_index.append(int(tensors["episode_index"][i]))
         samples.keyframe_start.append(bool(tensors["keyframe_start"][i]))
+        samples.keyframe_index.append(int(keyframe_index[i]))
     embeddings = {t: torch.from_numpy(tensors["lang"][u]) for u, t in enumerate(samples.instructions)}
     return samples, embeddings

@@ -11,19 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from rvt2cli.errors import UserError
-
-MAX_KEYFRAME_STEPS = 25  # the time feature counts keyframes reached, over this horizon (as PerAct's episode length)
-
-
-def time_feature(keyframes_reached: int) -> float:
-    """1 at the start of an episode, -1 after MAX_KEYFRAME_STEPS keyframes (PerAct's low-dim time)."""
-    return 1.0 - 2.0 * min(keyframes_reached, MAX_KEYFRAME_STEPS) / MAX_KEYFRAME_STEPS
-
-
-def proprio_vector(gripper_open: bool, finger_positions, keyframes_reached: int) -> np.ndarray:
-    """[gripper open (0/1), left finger, right finger (m), time]: RLBench's low-dim state."""
-    return np.array([float(gripper_open), float(finger_positions[0]), float(finger_positions[1]),
-                     time_feature(keyframes_reached)], dtype=np.float32)
+from rvt2cli.model.observation import proprio_vector
 
 
 @dataclass
@@ -44,6 +32,7 @@ class SampleSet:
     instruction_index: list[int] = field(default_factory=list)
     episode_index: list[int] = field(default_factory=list)
     keyframe_start: list[bool] = field(default_factory=list)       # observed at frame 0 or at a keyframe
+    keyframe_index: list[int] = field(default_factory=list)        # which keyframe of its episode the target is (-1: unknown)
     skipped_empty: int = 0
     skipped_failures: int = 0
 
@@ -53,7 +42,8 @@ class SampleSet:
     def subset(self, indices: list[int]) -> "SampleSet":
         """These samples only (the task, instruction and episode tables are kept whole)."""
         per_sample = ["xyz", "rgb", "proprio", "target_position", "target_quaternion", "target_gripper_open",
-                      "target_ignore_collisions", "task_index", "instruction_index", "episode_index", "keyframe_start"]
+                      "target_ignore_collisions", "task_index", "instruction_index", "episode_index", "keyframe_start",
+                      "keyframe_index"]
         out = SampleSet(tasks=self.tasks, instructions=self.instructions, bounds=self.bounds, rigs=self.rigs,
                         episodes=self.episodes, skipped_empty=self.skipped_empty, skipped_failures=self.skipped_failures)
         for name in per_sample:
@@ -66,45 +56,51 @@ class SampleSet:
             table.append(value)
         return table.index(value)
 
-    def add_episode(self, path: Path, keyframe_starts_only: bool = False) -> int:
-        """Add an annotated episode's samples (with `keyframe_starts_only`, those observed at frame 0 or at a keyframe)."""
+    def add_episode(self, path: Path, keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None) -> int:
+        """Add an annotated episode's samples (with `keyframe_starts_only`, those observed at frame 0 or at
+        a keyframe; with `cameras`, clouds fused from those cameras only)."""
         from rvt2cli.data.reader import read_episode
 
         ep = read_episode(path)
+        if cameras and not set(cameras) <= set(ep.meta.cameras):
+            missing = ", ".join(c for c in cameras if c not in ep.meta.cameras)
+            raise UserError(f"{path}: has no camera {missing} (it has {', '.join(ep.meta.cameras)}); choose --cameras among them")
         task = self._index(self.tasks, ep.meta.task)
         self.bounds[ep.meta.task] = list(ep.meta.scene_bounds)
-        self.rigs[ep.meta.task] = {"cameras": list(ep.meta.cameras), "image_size": ep.meta.extra.get("image_size")}
+        self.rigs[ep.meta.task] = {"cameras": list(cameras or ep.meta.cameras), "image_size": ep.meta.extra.get("image_size")}
         instruction = self._index(self.instructions, ep.instruction["text"])
         episode = self._index(self.episodes, str(path))
-        keyframes = ep.keyframes["keyframes"]
-        starts = {0} | {kf["frame"] for kf in keyframes}
+        annotation = ep.require_keyframes()
+        starts = annotation.starts
+        fingers = ep.meta.robot.fingers(ep.robot.joint_positions, ep.robot.joint_names, str(path))
         added = 0
-        for sample in ep.keyframes["samples"]:
-            frame, k = sample["obs_frame"], sample["keyframe"]
+        for sample in annotation.samples:
+            frame, k = sample.obs_frame, sample.keyframe
             if keyframe_starts_only and frame not in starts:
                 continue
-            cloud = ep.cloud(frame)
+            cloud = ep.cloud(frame, cameras)
             if len(cloud) == 0:
                 self.skipped_empty += 1
                 continue
-            target = keyframes[k]
+            target = annotation.keyframes[k]
             self.xyz.append(cloud.xyz)
             self.rgb.append(cloud.rgb)
-            self.proprio.append(proprio_vector(ep.robot.gripper_command[frame] > 0, ep.robot.joint_positions[frame, -2:], k))
-            self.target_position.append(np.asarray(target["tcp_pose"][:3], np.float32))
-            self.target_quaternion.append(np.asarray(target["tcp_pose"][3:], np.float64))
-            self.target_gripper_open.append(target["gripper_open"])
-            self.target_ignore_collisions.append(target["ignore_collisions"])
+            self.proprio.append(proprio_vector(ep.robot.gripper_command[frame] > 0, fingers[frame], k))
+            self.target_position.append(np.asarray(target.position, np.float32))
+            self.target_quaternion.append(np.asarray(target.quaternion, np.float64))
+            self.target_gripper_open.append(target.gripper_open)
+            self.target_ignore_collisions.append(target.ignore_collisions)
             self.task_index.append(task)
             self.instruction_index.append(instruction)
             self.episode_index.append(episode)
             self.keyframe_start.append(frame in starts)
+            self.keyframe_index.append(k)
             added += 1
         return added
 
 
 def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True,
-                 keyframe_starts_only: bool = False) -> SampleSet:
+                 keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None) -> SampleSet:
     """Read every episode's samples. Refuses, in one line, files without keyframes."""
     from rvt2cli.data import topics
     from rvt2cli.data.reader import read_episode_overview
@@ -124,7 +120,7 @@ def load_samples(paths: list[Path], include_failures: bool = False, progress: bo
         raise UserError(f"{names}: no keyframes; run `rvt2 extract-keyframes {folder}/` first")
     samples = SampleSet()
     for path in tqdm(usable, desc="load samples", unit="ep", disable=not progress):
-        samples.add_episode(path, keyframe_starts_only)
+        samples.add_episode(path, keyframe_starts_only, cameras)
     if len(samples) == 0:
         raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else ""))
     samples.skipped_failures = len(failures)

@@ -1,9 +1,14 @@
 """`rvt2 train`: the training loop with the paper's system improvements.
 
-bf16 autocast on CUDA, LAMB (8-bit from bitsandbytes when installed), warmup + cosine schedule,
-gradient clipping, a guard that skips steps with a non-finite loss or gradient (and stops after too
-many), checkpoints that resume exactly, CSV + TensorBoard logs, validation on held-out episodes, and
-DDP when started by torchrun.
+bf16 autocast on CUDA, LAMB (8-bit states on CUDA), warmup + cosine schedule, gradient clipping, a
+guard that skips steps with a non-finite loss or gradient on the device (and stops after too many),
+checkpoints that resume exactly (every rank's sampling state included), CSV + TensorBoard logs,
+offline precision on held-out episodes, and DDP when started by torchrun.
+
+The pieces, in the order a run uses them: `resolve_options` (a resumed run keeps its stored options),
+`load_data` (samples -> packed tensors on the device), `TrainingState` (model, optimiser, schedule,
+sampling generator, counters: everything a checkpoint saves), `TrainStep` (rvt2cli.train.step), and
+`train`, the loop that ties them together.
 """
 
 import csv
@@ -11,56 +16,29 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from rvt2cli.atomic import atomic_open, ensure_folder
 from rvt2cli.data.paths import episode_paths
 from rvt2cli.errors import UserError
 from rvt2cli.model.config import ModelConfig, get_config
 from rvt2cli.model.language import InstructionCache
-from rvt2cli.model.loss import policy_loss
 from rvt2cli.model.policy import RVT2Policy
-from rvt2cli.train.batches import TaskUniformSampler, make_batch, pack
-from rvt2cli.train.checkpoint import load_checkpoint, save_checkpoint
-from rvt2cli.train.metrics import prediction_errors
+from rvt2cli.train.batches import PackedSamples, TaskUniformSampler, make_batch, pack
+from rvt2cli.train.checkpoint import Checkpoint, load_checkpoint, load_weights, save_checkpoint
+from rvt2cli.train.metrics import headline, precision_report, score_predictions
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
+from rvt2cli.train.options import TrainOptions, conflicts
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
 from rvt2cli.train.samples import SampleSet, load_samples, select_samples
+from rvt2cli.train.step import TrainStep
 
-
-@dataclass
-class TrainOptions:
-    data: list[str]
-    out: str
-    config: str = "rvt2"
-    steps: int = 10_000
-    batch_size: int = 24
-    lr: float | None = None          # default: 1.25e-5 x total batch (the paper's rule)
-    weight_decay: float = 1e-4
-    warmup: int = 2000               # capped at a tenth of the steps
-    clip: float = 5.0
-    max_points: int = 50_000
-    augment: bool = True             # the paper's translation and yaw augmentation
-    seed: int = 0
-    device: str = "auto"
-    resume: bool = False
-    save_every: int = 1000
-    val_every: int = 500
-    val_episodes: int = 1            # held out per task (tasks with at least 3 episodes)
-    log_every: int = 10
-    max_bad_steps: int = 50
-    include_failures: bool = False
-    episodes_per_task: int | None = None   # only each task's first N episodes (the few-demo setting)
-    keyframe_starts_only: bool = False     # only samples observed at frame 0 or at a keyframe
-    amp: bool = True
-    compile: bool = False            # torch.compile the network (H100 training step: 381 -> 560 samples/s)
-    eight_bit: bool = True
-    render_backend: str = "warp"
-    progress: bool = True
+__all__ = ["TrainOptions", "TrainResult", "train"]
 
 
 @dataclass
@@ -71,6 +49,7 @@ class TrainResult:
     skipped_steps: int = 0
     last_validation: dict | None = None
     seconds: float = 0.0
+    samples_per_s: float | None = None   # the loop's throughput after its first logged interval
     packed: object = field(default=None, repr=False)  # the packed training samples (for inspection)
 
 
@@ -82,16 +61,54 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def load_training_data(data: list[str], include_failures: bool, progress: bool,
-                       keyframe_starts_only: bool = False) -> tuple[SampleSet, dict[str, torch.Tensor]]:
+# --- options -----------------------------------------------------------------------------------------
+
+def stored_options(run_dir: Path) -> TrainOptions | None:
+    """The options a run was started with (from its last checkpoint), or None for a run without them."""
+    options = load_checkpoint(run_dir).info.get("options")
+    return TrainOptions.from_json(options) if options else None
+
+
+def resolve_options(opts: TrainOptions) -> tuple[TrainOptions, Checkpoint | None]:
+    """A fresh run needs a fresh folder; a resumed run must keep its run-defining options."""
+    run_dir = Path(opts.out)
+    if not opts.resume:
+        if (run_dir / "last").exists():
+            raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
+        return opts, None
+    ckpt = load_checkpoint(run_dir)
+    stored = stored_options(run_dir)
+    if stored is not None:
+        changed = conflicts(stored, opts)
+        if changed:
+            name = changed[0]
+            raise UserError(f"--{name.replace('_', '-')} {getattr(opts, name)!r} differs from the run's "
+                            f"{getattr(stored, name)!r} in {run_dir}; a resumed run keeps its options: "
+                            "leave the flag out, or train into a new --out")
+    if ckpt.config != get_config(opts.config):
+        raise UserError(f"{run_dir}: was trained with config '{ckpt.config.name}'; resume with --config "
+                        f"{ckpt.config.name} or train into a new --out")
+    return opts, ckpt
+
+
+# --- data --------------------------------------------------------------------------------------------
+
+def load_training_data(data: list[str], include_failures: bool, progress: bool, keyframe_starts_only: bool = False,
+                       cameras: tuple[str, ...] | None = None) -> tuple[SampleSet, dict[str, torch.Tensor]]:
     """Samples from one sample cache (with its instruction embeddings) or from episode files (embeddings
     still to compute; with `keyframe_starts_only`, the other samples' clouds are not even fused)."""
     caches = [d for d in data if is_sample_cache(d)]
     if caches:
         if len(data) > 1:
             raise UserError(f"--data: give one sample cache ({caches[0]}) or episode files/folders, not both")
-        return load_sample_cache(caches[0])
-    return load_samples(episode_paths(data), include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only), {}
+        samples, embeddings = load_sample_cache(caches[0])
+        if cameras and any(list(cameras) != r["cameras"] for r in samples.rigs.values()):
+            raise UserError(f"{caches[0]}: its clouds were fused from other cameras than --cameras {','.join(cameras)}; "
+                            f"pack the cache with `rvt2 pack-samples --cameras {','.join(cameras)}`")
+        return samples, embeddings
+    paths = episode_paths(data)
+    return load_samples(paths, include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only,
+                        cameras=cameras), {}
 
 
 def split_episodes(samples, val_episodes: int, selected: list[int] | None = None) -> tuple[list[int], list[int]]:
@@ -110,6 +127,37 @@ def split_episodes(samples, val_episodes: int, selected: list[int] | None = None
     return train, val
 
 
+@dataclass
+class TrainingData:
+    samples: SampleSet
+    selected: list[int]
+    packed: PackedSamples
+    packed_val: PackedSamples | None
+    instructions: InstructionCache
+
+
+def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resume: Checkpoint | None, say) -> TrainingData:
+    samples, known = load_training_data(opts.data, opts.include_failures, progress, opts.keyframe_starts_only, opts.cameras)
+    selected = select_samples(samples, opts.episodes_per_task, opts.keyframe_starts_only)
+    train_idx, val_idx = split_episodes(samples, opts.val_episodes, selected)
+    if not train_idx:
+        raise UserError(f"--data: no training samples left after holding out {opts.val_episodes} episode(s) per task; "
+                        f"lower --val-episodes")
+    known = {text: emb[: cfg.lang_tokens] for text, emb in known.items()}  # a cache stores the longest prefix any config uses
+    if resume:
+        known = {**known, **resume.instruction_embeddings}
+    cache = InstructionCache(cfg.lang_tokens, known)
+    lang = cache(samples.instructions)
+    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed)
+    packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed) if val_idx else None
+    used_episodes = len({samples.episode_index[i] for i in selected})
+    say(f"data: {len(selected)} samples from {used_episodes} episodes of {len(samples.tasks)} task(s) "
+        f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
+        + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
+        + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else ""))
+    return TrainingData(samples, selected, packed, packed_val, cache)
+
+
 def count_flops(policy: RVT2Policy, packed, device) -> float | None:
     """Forward FLOPs of one sample (matrix products, convolutions, attention) from torch's counter."""
     from torch.utils.flop_counter import FlopCounterMode
@@ -121,41 +169,7 @@ def count_flops(policy: RVT2Policy, packed, device) -> float | None:
     return float(counter.get_total_flops())
 
 
-class RunLog:
-    """train.csv (one row per logged step) and TensorBoard, written by rank 0 only."""
-
-    FIELDS = ["step", "loss", "heatmap1", "heatmap2", "rot_x", "rot_y", "rot_z", "gripper", "collision",
-              "lr", "grad_norm", "samples_per_s", "skipped"]
-
-    def __init__(self, run_dir: Path, resume_step: int):
-        self.path = run_dir / "train.csv"
-        rows = []
-        if resume_step and self.path.exists():  # drop rows written after the checkpoint we resume from
-            with open(self.path) as f:
-                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
-        with open(self.path, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.FIELDS)
-            writer.writeheader()
-            writer.writerows(rows)
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step + 1 if resume_step else None)
-
-    def log(self, row: dict) -> None:
-        with open(self.path, "a", newline="") as f:
-            csv.DictWriter(f, fieldnames=self.FIELDS, extrasaction="ignore").writerow(row)
-        for key, value in row.items():
-            if key != "step" and value is not None and value != "":
-                self.tb.add_scalar(f"train/{key}", value, row["step"])
-
-    def log_validation(self, step: int, metrics: dict) -> None:
-        for key, value in metrics.items():
-            self.tb.add_scalar(f"val/{key}", value, step)
-        self.tb.flush()
-
-    def close(self) -> None:
-        self.tb.close()
-
+# --- the state a checkpoint keeps -------------------------------------------------------------------------
 
 def _distributed() -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -165,9 +179,117 @@ def _distributed() -> tuple[int, int]:
     return (torch.distributed.get_rank() if world > 1 else 0), world
 
 
+def _gather(value, world: int) -> list:
+    """Every rank's `value` (a CPU tensor or a number), in rank order."""
+    if world == 1:
+        return [value]
+    values = [None] * world
+    torch.distributed.all_gather_object(values, value)
+    return values
+
+
+@dataclass
+class TrainingState:
+    """Everything besides the weights that a resumed run needs to continue exactly. A new piece of
+    state is added here, in `save` and `restore`, and nowhere else."""
+
+    optimizer: torch.optim.Optimizer
+    schedule: torch.optim.lr_scheduler.LRScheduler
+    generator: torch.Generator      # this rank's sampling and augmentation
+    step: int = 0
+    skipped: int = 0
+
+    def save(self, world: int) -> dict:
+        """The state of every rank (call on every rank; the result is complete on all of them)."""
+        return {"optimizer": self.optimizer.state_dict(), "schedule": self.schedule.state_dict(),
+                "generators": _gather(self.generator.get_state(), world), "torch_rng": _gather(torch.get_rng_state(), world),
+                "step": self.step, "skipped": self.skipped, "world_size": world}
+
+    def restore(self, state: dict, rank: int, world: int, where: Path) -> None:
+        saved_world = state.get("world_size", len(state["generators"]))
+        if saved_world != world:
+            raise UserError(f"{where}: the run was trained by {saved_world} process(es), this resume has {world}; "
+                            f"resume with the same number (torchrun --nproc-per-node {saved_world})")
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.schedule.load_state_dict(state["schedule"])
+        self.generator.set_state(state["generators"][rank])
+        torch.set_rng_state(state["torch_rng"][rank])
+        self.step, self.skipped = int(state["step"]), int(state["skipped"])
+
+
+# --- logs ----------------------------------------------------------------------------------------------
+
+class RunLog:
+    """train.csv (one row per logged step), validation.csv (precision per task and keyframe at each
+    validation) and TensorBoard, written by rank 0 only."""
+
+    FIELDS = ["step", "loss", "heatmap1", "heatmap2", "rot_x", "rot_y", "rot_z", "gripper", "collision",
+              "lr", "grad_norm", "samples_per_s", "skipped"]
+    VAL_FIELDS = ["step", "task", "keyframe", "samples", "stage1_mm_median", "stage1_mm_p90", "stage2_mm_median",
+                  "stage2_mm_p90", "rotation_deg_median", "rotation_deg_p90", "gripper_accuracy", "collision_accuracy"]
+
+    def __init__(self, run_dir: Path, resume_step: int):
+        self.train_csv = run_dir / "train.csv"
+        self.val_csv = run_dir / "validation.csv"
+        for path, fields in ((self.train_csv, self.FIELDS), (self.val_csv, self.VAL_FIELDS)):
+            self._restart(path, fields, resume_step)
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step + 1 if resume_step else None)
+
+    @staticmethod
+    def _restart(path: Path, fields: list[str], resume_step: int) -> None:
+        """Keep the rows up to the checkpoint a run resumes from (none for a new run)."""
+        rows = []
+        if resume_step and path.exists():
+            with open(path) as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
+        with atomic_open(path, "w") as f:
+            writer = csv.DictWriter(f, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(rows)
+
+    def log(self, row: dict) -> None:
+        with open(self.train_csv, "a", newline="") as f:
+            csv.DictWriter(f, fieldnames=self.FIELDS, extrasaction="ignore").writerow(row)
+        for key, value in row.items():
+            if key != "step" and value is not None and value != "":
+                self.tb.add_scalar(f"train/{key}", value, row["step"])
+
+    def log_validation(self, step: int, numbers: dict, report: dict) -> None:
+        for key, value in numbers.items():
+            if value is not None:
+                self.tb.add_scalar(f"val/{key}", value, step)
+        rows = []
+        for task, entry in report["tasks"].items():
+            for keyframe, s in [("all", entry), *entry["keyframes"].items()]:
+                rows.append({"step": step, "task": task, "keyframe": keyframe, "samples": s["samples"],
+                             "stage1_mm_median": s["stage1_mm"]["median"], "stage1_mm_p90": s["stage1_mm"]["p90"],
+                             "stage2_mm_median": s["stage2_mm"]["median"], "stage2_mm_p90": s["stage2_mm"]["p90"],
+                             "rotation_deg_median": s["rotation_deg"]["median"], "rotation_deg_p90": s["rotation_deg"]["p90"],
+                             "gripper_accuracy": s["gripper_accuracy"], "collision_accuracy": s["collision_accuracy"]})
+        with open(self.val_csv, "a", newline="") as f:
+            csv.DictWriter(f, fieldnames=self.VAL_FIELDS).writerows(rows)
+        self.tb.flush()
+
+    def close(self) -> None:
+        self.tb.close()
+
+
+def _write_run_json(run_dir: Path, update: dict) -> None:
+    path = run_dir / "run.json"
+    content = json.loads(path.read_text()) if path.exists() else {}
+    content.update(update)
+    with atomic_open(path, "w") as f:
+        json.dump(content, f, indent=2)
+
+
+# --- the loop ------------------------------------------------------------------------------------------
+
 def train(opts: TrainOptions, say=print) -> TrainResult:
     start_time = time.perf_counter()
     rank, world = _distributed()
+    say = say if rank == 0 else (lambda *_: None)
     device = pick_device(opts.device)
     if world > 1 and device.type == "cuda":
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
@@ -175,61 +297,28 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     torch.manual_seed(opts.seed)
     cfg: ModelConfig = get_config(opts.config)
     run_dir = Path(opts.out)
+    opts, resume = resolve_options(opts)
     total_batch = opts.batch_size * world
     lr = opts.lr if opts.lr is not None else 1.25e-5 * total_batch
     warmup = max(1, min(opts.warmup, opts.steps // 10))
-
-    resume_ckpt = None
-    if opts.resume:
-        resume_ckpt = load_checkpoint(run_dir)
-        if resume_ckpt.config != cfg:
-            raise UserError(f"{run_dir}: was trained with config '{resume_ckpt.config.name}' "
-                            f"({resume_ckpt.config.to_dict() if resume_ckpt.config.name == cfg.name else 'another config'}); "
-                            f"resume with --config {resume_ckpt.config.name} or train into a new --out")
-    elif (run_dir / "last").exists():
-        raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
-
-    samples, known = load_training_data(opts.data, opts.include_failures, progress=opts.progress and rank == 0,
-                                        keyframe_starts_only=opts.keyframe_starts_only)
-    selected = select_samples(samples, opts.episodes_per_task, opts.keyframe_starts_only)
-    train_idx, val_idx = split_episodes(samples, opts.val_episodes, selected)
-    if not train_idx:
-        raise UserError(f"--data: no training samples left after holding out {opts.val_episodes} episode(s) per task; "
-                        f"lower --val-episodes")
-    known = {text: emb[: cfg.lang_tokens] for text, emb in known.items()}  # a cache stores the longest prefix any config uses
-    if resume_ckpt:
-        known = {**known, **resume_ckpt.instruction_embeddings}
-    cache = InstructionCache(cfg.lang_tokens, known)
-    lang = cache(samples.instructions)
-    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed)
-    packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed) if val_idx else None
     if rank == 0:
-        used_episodes = len({samples.episode_index[i] for i in selected})
-        say(f"data: {len(selected)} samples from {used_episodes} episodes of {len(samples.tasks)} task(s) "
-            f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
-            + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
-            + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else ""))
+        ensure_folder(run_dir, "run folder")
 
+    data = load_data(opts, cfg, device, opts.progress and rank == 0, resume, say)
     torch.manual_seed(opts.seed)  # here: loading the text encoder above may or may not have drawn random numbers
     policy = RVT2Policy(cfg, render_backend=opts.render_backend).to(device)
-    if resume_ckpt:
-        policy.load_state_dict(resume_ckpt.weights)
+    if resume:
+        load_weights(policy, resume)
     if opts.compile:
         policy.compile_network()
     optimizer, optimizer_name = make_optimizer(policy.parameters(), lr, opts.weight_decay, device, opts.eight_bit)
-    schedule = warmup_cosine(optimizer, warmup, opts.steps)
-    generator = torch.Generator().manual_seed(opts.seed * 1000 + rank)
-    step, skipped = 0, 0
-    if resume_ckpt:
-        state = resume_ckpt.state()
-        optimizer.load_state_dict(state["optimizer"])
-        schedule.load_state_dict(state["schedule"])
-        generator.set_state(state["generator"][rank] if rank < len(state["generator"]) else state["generator"][0])
-        torch.set_rng_state(state["torch_rng"])
-        step, skipped = state["step"], state["skipped"]
+    state = TrainingState(optimizer, warmup_cosine(optimizer, warmup, opts.steps),
+                          torch.Generator().manual_seed(opts.seed * 1000 + rank))
+    if resume:
+        state.restore(resume.state(), rank, world, resume.path)
     if rank == 0:
         params = sum(p.numel() for p in policy.parameters())
-        flops = count_flops(policy, packed, device)
+        flops = count_flops(policy, data.packed, device)
         say(f"model: {cfg.name}, {params / 1e6:.1f} M parameters, {flops / 1e9:.1f} GFLOPs forward per sample "
             f"(~{3 * flops / 1e9:.0f} GFLOPs per training sample); optimizer {optimizer_name}, lr {lr:.2e}, "
             f"warmup {warmup}, batch {opts.batch_size} x {world} on {device}" + (", bf16" if opts.amp and device.type == "cuda" else ""))
@@ -237,73 +326,85 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     model = policy
     if world > 1:
         model = torch.nn.parallel.DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None)
-    sampler = TaskUniformSampler(packed.task)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    log = RunLog(run_dir, step) if rank == 0 else None
-    if rank == 0 and not opts.resume:
-        used = sorted({samples.episodes[samples.episode_index[i]] for i in selected})
-        (run_dir / "run.json").write_text(json.dumps({"options": asdict(opts), "episodes": used}, indent=2))
-    info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs}
-    result = TrainResult(run_dir=run_dir, steps=step, skipped_steps=skipped)
     amp = opts.amp and device.type == "cuda"
-    bar = tqdm(total=opts.steps, initial=step, desc=f"train {cfg.name}", unit="step", disable=not (opts.progress and rank == 0),
-               dynamic_ncols=True)
-    rate, last_time = None, time.perf_counter()
+    train_step = TrainStep(policy, optimizer, state.schedule, amp, opts.clip, model)
+    sampler = TaskUniformSampler(data.packed.task)
+    samples = data.samples
+    info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs, "options": opts.to_json()}
+    log = RunLog(run_dir, state.step) if rank == 0 else None
+    if rank == 0 and not opts.resume:
+        used = sorted({samples.episodes[samples.episode_index[i]] for i in data.selected})
+        _write_run_json(run_dir, {"options": opts.to_json(), "episodes": used})
+    result = TrainResult(run_dir=run_dir, steps=state.step, skipped_steps=state.skipped)
+    bar = tqdm(total=opts.steps, initial=state.step, desc=f"train {cfg.name}", unit="step",
+               disable=not (opts.progress and rank == 0), dynamic_ncols=True)
+    pending: list = []   # (step, StepResult, lr) not yet read back from the device
+    first_step = state.step
+    last_read, last_read_step = time.perf_counter(), state.step
 
-    def checkpoint(at_step: int) -> None:
-        state = {"optimizer": optimizer.state_dict(), "schedule": schedule.state_dict(), "generator": [generator.get_state()],
-                 "torch_rng": torch.get_rng_state(), "step": at_step, "skipped": skipped}
-        save_checkpoint(run_dir, at_step, policy, cfg, info, cache.as_dict(), state)
+    def read_back() -> None:
+        """Bring the pending steps' numbers to the host (one synchronisation), log them, watch divergence."""
+        nonlocal pending, last_read, last_read_step
+        if not pending:
+            return
+        totals = torch.stack([r.losses["total"] for _, r, _ in pending]).float().cpu().tolist()
+        finite = torch.stack([r.finite for _, r, _ in pending]).cpu().tolist()
+        now = time.perf_counter()
+        rate = total_batch * (pending[-1][0] - last_read_step) / max(now - last_read, 1e-9)
+        for (at, _, _), ok in zip(pending, finite):
+            if not ok:
+                state.skipped += 1
+                if state.skipped > opts.max_bad_steps:
+                    raise UserError(f"training diverged: {state.skipped} steps with a non-finite loss or gradient "
+                                    f"(last at step {at}); lower --lr or check the data")
+        result.losses.extend(totals)
+        at, last, lr_now = pending[-1]
+        if rank == 0:
+            if last_read_step > first_step:  # the first interval includes compilation and warm-up
+                result.samples_per_s = rate
+            log.log({"step": at, "loss": totals[-1], **{k: float(v) for k, v in last.losses.items() if k != "total"},
+                     "lr": lr_now, "grad_norm": float(last.grad_norm), "samples_per_s": rate, "skipped": state.skipped})
+            bar.update(at - bar.n)
+            bar.set_postfix(loss=f"{totals[-1]:.3f}", lr=f"{lr_now:.1e}", samples_s=f"{rate:.1f}")
+        pending, last_read, last_read_step = [], now, at
 
     policy.train()
     try:
-        while step < opts.steps:
-            batch = make_batch(packed, sampler.sample(opts.batch_size, generator), cfg, generator,
+        while state.step < opts.steps:
+            batch = make_batch(data.packed, sampler.sample(opts.batch_size, state.generator), cfg, state.generator,
                                max_translation=0.125 if opts.augment else 0.0, max_yaw_deg=45.0 if opts.augment else 0.0)
-            with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=amp):
-                outputs = model(batch.obs, batch.position, batch.rot_bins, batch.stage2_center)
-            losses = policy_loss(outputs, batch.position, batch.rot_bins, batch.gripper, batch.collision,
-                                 cfg.image_size, cfg.heatmap_sigma)
-            loss = losses["total"]
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), opts.clip)
-            step += 1
-            loss_value = float(loss.detach())
-            if not (math.isfinite(loss_value) and torch.isfinite(grad_norm)):
-                skipped += 1
-                optimizer.zero_grad(set_to_none=True)
-                if skipped > opts.max_bad_steps:
-                    raise UserError(f"training diverged: {skipped} steps with a non-finite loss or gradient "
-                                    f"(last at step {step}); lower --lr or check the data")
-            else:
-                optimizer.step()
-            schedule.step()
-            result.losses.append(loss_value)
-            now = time.perf_counter()
-            current = total_batch / max(now - last_time, 1e-9)
-            rate = current if rate is None else 0.9 * rate + 0.1 * current
-            last_time = now
-            if rank == 0:
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss_value:.3f}", lr=f"{schedule.get_last_lr()[0]:.1e}", samples_s=f"{rate:.1f}")
-                if step % opts.log_every == 0 or step == opts.steps:
-                    log.log({"step": step, "loss": loss_value, **{k: float(v.detach()) for k, v in losses.items() if k != "total"},
-                             "lr": schedule.get_last_lr()[0], "grad_norm": float(grad_norm), "samples_per_s": rate,
-                             "skipped": skipped})
-                if packed_val is not None and (step % opts.val_every == 0 or step == opts.steps):
-                    result.last_validation = prediction_errors(policy, packed_val, autocast=amp)
-                    log.log_validation(step, result.last_validation)
-                    v = result.last_validation
-                    bar.write(f"step {step}: validation translation {v['translation_mm']:.1f} mm, rotation {v['rotation_deg']:.1f} deg, "
-                              f"gripper {v['gripper_accuracy']:.0%} ({v['samples']} samples)")
-                if step % opts.save_every == 0 or step == opts.steps:
-                    checkpoint(step)
+            lr_now = state.schedule.get_last_lr()[0]
+            step_result = train_step(batch)
+            state.step += 1
+            pending.append((state.step, step_result, lr_now))
+            step = state.step
+            validate = data.packed_val is not None and (step % opts.val_every == 0 or step == opts.steps)
+            save = step % opts.save_every == 0 or step == opts.steps
+            if step % opts.log_every == 0 or validate or save or step == opts.steps:
+                read_back()
+            if validate and rank == 0:
+                scores = score_predictions(policy, data.packed_val, autocast=amp)
+                report = precision_report(scores, samples.tasks)
+                result.last_validation = headline(report["overall"])
+                log.log_validation(step, result.last_validation, report)
+                v = result.last_validation
+                bar.write(f"step {step}: validation stage-2 error {v['translation_mm_median']:.1f} mm median "
+                          f"({v['translation_mm_p90']:.1f} p90), rotation {v['rotation_deg_median']:.1f} deg, "
+                          f"gripper {v['gripper_accuracy']:.0%} ({v['samples']} samples)")
+                if step == opts.steps:
+                    _write_run_json(run_dir, {"validation": report})
+            if save:
+                checkpoint_state = state.save(world)  # every rank takes part (gathers the generators)
+                if rank == 0:
+                    save_checkpoint(run_dir, step, policy, cfg, info, data.instructions.as_dict(), checkpoint_state)
     finally:
         bar.close()
         if log:
             log.close()
-    result.steps, result.skipped_steps = step, skipped
+    result.steps, result.skipped_steps = state.step, state.skipped
     result.seconds = time.perf_counter() - start_time
-    result.packed = packed
+    result.packed = data.packed
+    if rank == 0:
+        _write_run_json(run_dir, {"seconds": result.seconds, "samples_per_s": result.samples_per_s, "steps": result.steps})
     return result
+

@@ -1,11 +1,20 @@
 """The scene cube: world coordinates (metres) <-> the normalised cube [-1, 1]^3 the renderer sees.
 
-The mapping is isotropic (one scale for all axes), so rotations and distances keep their shape.
+The cube is centred on the scene bounds' centre and its half extent is the bounds' largest half
+extent: the mapping is isotropic (one scale for all axes), so rotations and distances keep their shape.
 """
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
+
+
+def center_and_half(bounds):
+    """Scene bounds (xmin ymin zmin xmax ymax zmax) -> (centre [3], half extent), for a numpy array or a
+    torch tensor alike (the exported policy computes it inside its graph)."""
+    lo, hi = bounds[:3], bounds[3:]
+    return (lo + hi) / 2, ((hi - lo) / 2).max()
 
 
 @dataclass(frozen=True)
@@ -15,10 +24,8 @@ class Workspace:
 
     @staticmethod
     def from_bounds(bounds) -> "Workspace":
-        lo, hi = bounds[:3], bounds[3:]
-        center = tuple((a + b) / 2 for a, b in zip(lo, hi))
-        half = max((b - a) / 2 for a, b in zip(lo, hi))
-        return Workspace(center=center, half_extent=half)
+        center, half = center_and_half(np.asarray(bounds, dtype=np.float64))
+        return Workspace(center=tuple(float(c) for c in center), half_extent=float(half))
 
     def _center(self, like: torch.Tensor) -> torch.Tensor:
         return torch.tensor(self.center, dtype=like.dtype, device=like.device)

@@ -1,0 +1,123 @@
+"""Camera frames in, the next keyframe out: the policy as a robot program calls it.
+
+    from rvt2cli.deploy import CameraFrame, KeyframePolicy
+
+    policy = KeyframePolicy.load("runs/multi")          # a run folder, a checkpoint, or an `rvt2 export` folder
+    keyframe = policy.predict(
+        {"front": CameraFrame(rgb=rgb, depth=depth_mm, intrinsic=K, cam2world=pose)},   # one or more cameras
+        instruction="put the block on the plate", gripper_open=True, finger_positions=(0.04, 0.04),
+        keyframes_done=0, task="stack_blocks")
+    keyframe.position, keyframe.quaternion, keyframe.gripper_open, keyframe.ignore_collisions
+
+Each camera gives its colour image (uint8 [H, W, 3], RGB), its depth registered to the colour image
+(float metres, or uint16 millimetres as RealSense gives it), its intrinsics K in OpenCV's (and ROS's)
+convention, and its pose in the robot's base frame (x y z qx qy qz qw, OpenCV optical axes: x right, y
+down, z forward), e.g. from a hand-eye calibration. The frames are fused, cropped to the task's scene
+bounds and turned into the policy's observation exactly as in training (`rvt2cli.model.observation`);
+the returned keyframe is in the base frame. A checkpoint runs in PyTorch; an exported folder runs its
+ONNX or TorchScript file, with the same answers (the export is parity-checked).
+"""
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rvt2cli.data.episode import CameraFrame
+from rvt2cli.data.fusion import depth_in_metres, fuse, intrinsic_from_opencv
+from rvt2cli.data.keyframes import Keyframe
+from rvt2cli.errors import UserError
+from rvt2cli.model.language import InstructionCache
+from rvt2cli.model.observation import colours, fit_points, proprio_vector
+
+__all__ = ["CameraFrame", "Keyframe", "KeyframePolicy"]
+
+
+class KeyframePolicy:
+    """A trained policy (a checkpoint or an exported folder) answering `predict(frames, ...)`."""
+
+    def __init__(self, tasks: dict[str, list[float]], lang_tokens: int, embeddings: dict[str, torch.Tensor]):
+        self.tasks = tasks   # task -> scene bounds the policy was trained with
+        self.instructions = InstructionCache(lang_tokens, embeddings)
+
+    @staticmethod
+    def load(path: str | Path, device: str = "cpu") -> "KeyframePolicy":
+        path = Path(path)
+        if (path / "manifest.json").is_file():
+            return _ExportedPolicy(path)
+        return _CheckpointPolicy(path, device)
+
+    def scene_bounds(self, task: str | None, scene_bounds=None) -> list[float]:
+        if scene_bounds is not None:
+            return [float(v) for v in scene_bounds]
+        if task is None and len(self.tasks) == 1:
+            task = next(iter(self.tasks))
+        if task not in self.tasks:
+            raise UserError(f"give task= (one of {', '.join(self.tasks)}) or scene_bounds= for this policy")
+        return list(self.tasks[task])
+
+    def cloud(self, frames: dict[str, CameraFrame], bounds, opencv_intrinsics: bool = True):
+        """The fused cloud the policy sees: every camera's points in the base frame, cropped to the bounds."""
+        prepared = {name: replace(f, depth=depth_in_metres(f.depth),
+                                  intrinsic=intrinsic_from_opencv(f.intrinsic) if opencv_intrinsics else np.asarray(f.intrinsic))
+                    for name, f in frames.items()}
+        cloud = fuse(prepared, bounds)
+        if len(cloud) == 0:
+            raise UserError(f"no camera point lies inside the scene bounds {bounds}; check the camera poses "
+                            "(camera-to-base, OpenCV axes) and the bounds")
+        return cloud
+
+    def predict(self, frames: dict[str, CameraFrame], instruction: str, gripper_open: bool, finger_positions=(0.04, 0.04),
+                keyframes_done: int = 0, task: str | None = None, scene_bounds=None,
+                opencv_intrinsics: bool = True) -> Keyframe:
+        """The next keyframe, in the frame the camera poses are given in (the robot's base)."""
+        bounds = self.scene_bounds(task, scene_bounds)
+        cloud = self.cloud(frames, bounds, opencv_intrinsics)
+        lang = self.instructions([instruction])[0]
+        return self._predict(cloud, bool(gripper_open), np.asarray(finger_positions, np.float32), int(keyframes_done), lang, bounds)
+
+    def _predict(self, cloud, gripper_open: bool, fingers, keyframes_done: int, lang, bounds) -> Keyframe:
+        raise NotImplementedError
+
+
+class _CheckpointPolicy(KeyframePolicy):
+    def __init__(self, path: Path, device: str):
+        from rvt2cli.eval.sources import PolicySource
+        from rvt2cli.train.checkpoint import load_policy
+
+        policy, ckpt = load_policy(path, device=device)
+        super().__init__({t: ckpt.scene_bounds(t) for t in ckpt.tasks}, policy.cfg.lang_tokens, ckpt.instruction_embeddings)
+        self.source = PolicySource(policy, ckpt, device)
+
+    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds) -> Keyframe:
+        self.source.use(bounds, lang)
+        return self.source.predict(cloud.xyz, cloud.rgb, gripper_open, fingers, keyframes_done)
+
+
+class _ExportedPolicy(KeyframePolicy):
+    def __init__(self, folder: Path):
+        from safetensors.torch import load_file
+
+        from rvt2cli.export.exporter import is_export, load_exported
+
+        if not is_export(folder):
+            raise UserError(f"{folder}: not a policy written by `rvt2 export` (its manifest.json is not one)")
+        manifest = json.loads((folder / "manifest.json").read_text())
+        texts = json.loads((folder / manifest["instructions"]["texts"]).read_text())
+        embeddings = load_file(str(folder / manifest["instructions"]["file"]))["embeddings"]
+        super().__init__({t: v["scene_bounds"] for t, v in manifest["tasks"].items()}, manifest["config"]["lang_tokens"],
+                         {t: embeddings[i] for i, t in enumerate(texts)})
+        self.run = load_exported(folder, manifest)
+        self.max_points = manifest["max_points"]
+
+    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds) -> Keyframe:
+        proprio = proprio_vector(gripper_open, fingers, keyframes_done)
+        xyz, rgb, count = fit_points(cloud.xyz, cloud.rgb, self.max_points)
+        position, quaternion, gripper_open, ignore_collisions, _ = self.run(
+            torch.from_numpy(xyz)[None], colours(torch.from_numpy(rgb))[None], torch.tensor([count]),
+            torch.from_numpy(proprio)[None], lang[None], torch.tensor(bounds, dtype=torch.float32))
+        return Keyframe.from_pose([*np.asarray(position)[0], *np.asarray(quaternion)[0]], bool(np.asarray(gripper_open)[0] > 0.5),
+                                  bool(np.asarray(ignore_collisions)[0] > 0.5))
+

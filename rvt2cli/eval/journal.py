@@ -1,0 +1,69 @@
+"""The evaluation journal: `episodes.jsonl` in the output folder, one JSON line per finished episode,
+appended (and flushed to disk) the moment the episode finishes. A crash of a simulator process, a
+kill or a power cut keeps every finished episode; `rvt2 eval --resume` with the same options runs only
+the episodes the journal does not have yet.
+
+    line 1     {"rvt2_eval_journal": 1, "plan": {...the options that decide which episodes run...}}
+    line 2..   one episode record (rvt2cli.eval.report.episode_record)
+"""
+
+import json
+import os
+from pathlib import Path
+
+from rvt2cli.atomic import atomic_open
+from rvt2cli.errors import UserError
+
+NAME = "episodes.jsonl"
+FORMAT = 1
+
+
+def _key(record: dict) -> tuple[str, str, int]:
+    return record["source"], record["task"], record["seed"]
+
+
+class Journal:
+    def __init__(self, out_dir: Path, plan: dict, resume: bool):
+        self.path = out_dir / NAME
+        self.records: list[dict] = []
+        if self.path.exists():
+            if not resume:
+                raise UserError(f"{out_dir}: holds an evaluation already ({NAME}); pass --resume to continue it, "
+                                "or choose another --out")
+            self.records = self._read(plan)
+        else:
+            with atomic_open(self.path, "w") as f:
+                f.write(json.dumps({"rvt2_eval_journal": FORMAT, "plan": plan}) + "\n")
+
+    def _read(self, plan: dict) -> list[dict]:
+        text = self.path.read_text()
+        if text and not text.endswith("\n"):  # the line being written when the run was killed: drop it
+            text = text[: text.rfind("\n") + 1]
+            with atomic_open(self.path, "w") as f:
+                f.write(text)
+        lines = text.splitlines()
+        try:
+            header = json.loads(lines[0])
+            stored = header["plan"]
+        except (IndexError, json.JSONDecodeError, KeyError, TypeError):
+            raise UserError(f"{self.path}: not an rvt2 evaluation journal; choose another --out") from None
+        changed = [k for k in sorted(set(plan) | set(stored)) if plan.get(k) != stored.get(k)]
+        if changed:
+            k = changed[0]
+            raise UserError(f"{self.path}: was run with {k} = {stored.get(k)!r}, this command has {plan.get(k)!r}; "
+                            "--resume needs the same options (or choose another --out)")
+        try:
+            return [json.loads(line) for line in lines[1:]]
+        except json.JSONDecodeError:
+            raise UserError(f"{self.path}: damaged journal line; choose another --out") from None
+
+    @property
+    def finished(self) -> set[tuple[str, str, int]]:
+        return {_key(r) for r in self.records}
+
+    def append(self, record: dict) -> None:
+        self.records.append(record)
+        with open(self.path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())

@@ -1,0 +1,77 @@
+"""What the policy sees: one contract for training, evaluation, rendering, export and deployment.
+
+An observation is
+- the fused point cloud of the scene (world frame, cropped to the task's scene bounds), mapped into the
+  normalised scene cube [-1, 1]^3 of the task's workspace (`Workspace`), padded or randomly subsampled
+  to a fixed number of points (`num_points` tells the renderer how many are real);
+- the points' colours in [0, 1];
+- the proprio vector (RLBench's low-dimensional state): gripper open (0/1), the two finger joints (m),
+  and time, 1 at the start and -1 after `MAX_KEYFRAME_STEPS` keyframes (PerAct's);
+- the instruction as `LANG_TOKENS`-or-so token embeddings of width `LANG_DIM` (all-MiniLM-L6-v2, zero
+  rows after the last token; `rvt2cli.model.language`).
+
+Every producer of policy inputs builds them with the functions here.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rvt2cli.render.workspace import Workspace
+
+LANG_DIM = 384            # all-MiniLM-L6-v2 token embeddings
+PROPRIO_DIM = 4           # gripper open, left finger, right finger, time
+MAX_KEYFRAME_STEPS = 25   # the time feature counts keyframes reached over this horizon
+
+
+@dataclass
+class Observation:
+    points: torch.Tensor      # [B, N, 3] cube coordinates (padded; see num_points)
+    rgb: torch.Tensor         # [B, N, 3] in [0, 1]
+    num_points: torch.Tensor  # [B] valid points per cloud
+    proprio: torch.Tensor     # [B, PROPRIO_DIM]
+    lang: torch.Tensor        # [B, L, LANG_DIM]
+
+    def to(self, device) -> "Observation":
+        return Observation(*(t.to(device, non_blocking=True) for t in (self.points, self.rgb, self.num_points, self.proprio, self.lang)))
+
+
+def time_feature(keyframes_reached: int) -> float:
+    """1 at the start of an episode, -1 after MAX_KEYFRAME_STEPS keyframes (PerAct's low-dim time)."""
+    return 1.0 - 2.0 * min(keyframes_reached, MAX_KEYFRAME_STEPS) / MAX_KEYFRAME_STEPS
+
+
+def proprio_vector(gripper_open: bool, finger_positions, keyframes_reached: int) -> np.ndarray:
+    """[gripper open (0/1), left finger, right finger (m), time]."""
+    return np.array([float(gripper_open), float(finger_positions[0]), float(finger_positions[1]),
+                     time_feature(keyframes_reached)], dtype=np.float32)
+
+
+def fit_points(xyz: np.ndarray, rgb: np.ndarray, max_points: int,
+               rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """A cloud as exactly `max_points` rows: a random subset (order kept) if it has more, zero rows
+    after it if fewer. Returns (xyz [max_points, 3] float32, rgb [max_points, 3] like rgb, real rows)."""
+    if len(xyz) > max_points:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        keep = np.sort(rng.choice(len(xyz), max_points, replace=False))
+        xyz, rgb = xyz[keep], rgb[keep]
+    out_xyz = np.zeros((max_points, 3), np.float32)
+    out_rgb = np.zeros((max_points, 3), rgb.dtype)
+    out_xyz[: len(xyz)], out_rgb[: len(xyz)] = xyz, rgb
+    return out_xyz, out_rgb, len(xyz)
+
+
+def colours(rgb: torch.Tensor) -> torch.Tensor:
+    """uint8 colours -> the policy's [0, 1] floats."""
+    return rgb.float() / 255.0
+
+
+def observe(xyz: np.ndarray, rgb: np.ndarray, proprio: np.ndarray, lang: torch.Tensor, workspace: Workspace,
+            device="cpu") -> Observation:
+    """One world-frame cloud (xyz [N, 3] m, rgb [N, 3] uint8) and the robot's state as a batch of one."""
+    points = torch.from_numpy(np.ascontiguousarray(xyz, np.float32)).to(device)[None]
+    return Observation(points=workspace.to_cube(points), rgb=colours(torch.from_numpy(np.ascontiguousarray(rgb)).to(device))[None],
+                       num_points=torch.tensor([len(xyz)], device=device),
+                       proprio=torch.from_numpy(np.asarray(proprio, np.float32)).to(device)[None],
+                       lang=lang.to(device).reshape(1, *lang.shape[-2:]))

@@ -1,0 +1,87 @@
+"""The deployment API: RGB-D frames + intrinsics + camera poses -> the next keyframe, from a checkpoint
+or an exported folder, equal to what `rvt2 eval` would predict on the same observation."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rvt2cli.data import read_episode
+from rvt2cli.data.fusion import intrinsic_to_opencv
+from rvt2cli.deploy import CameraFrame, KeyframePolicy
+from rvt2cli.errors import UserError
+from rvt2cli.eval.sources import PolicySource
+from rvt2cli.export.exporter import export_policy
+from rvt2cli.tasks import get_task
+from rvt2cli.train.checkpoint import load_policy
+
+pytestmark = pytest.mark.sim
+EXAMPLE = Path(__file__).parent.parent / "examples" / "deploy_from_frames.py"
+
+
+@pytest.fixture(scope="module")
+def episode(tiny_dataset):
+    return read_episode(sorted(tiny_dataset.glob("*.mcap"))[0])
+
+
+def frames_of(episode, frame: int, millimetres: bool = False) -> dict[str, CameraFrame]:
+    """The episode's cameras as a robot program has them: OpenCV intrinsics, depth in m or mm."""
+    out = {}
+    for name, cam in episode.cameras(frame).items():
+        depth = (cam.depth * 1000).round().astype(np.uint16) if millimetres else cam.depth
+        out[name] = CameraFrame(rgb=cam.rgb, depth=depth, intrinsic=intrinsic_to_opencv(cam.intrinsic), cam2world=cam.cam2world)
+    return out
+
+
+def expected(run_dir, episode, frame: int):
+    """What the evaluation loop predicts on this observation."""
+    policy, ckpt = load_policy(run_dir)
+    source = PolicySource(policy, ckpt)
+    source.reset(get_task(episode.meta.task), 0, episode.instruction["text"])
+    cloud = episode.cloud(frame)
+    fingers = episode.meta.robot.fingers(episode.robot.joint_positions[frame], episode.robot.joint_names)
+    return source.next(cloud, episode.robot.gripper_command[frame] > 0, fingers, 0)
+
+
+def test_checkpoint_predicts_what_eval_predicts(tiny_checkpoint, episode):
+    run_dir, _ = tiny_checkpoint
+    policy = KeyframePolicy.load(run_dir)
+    fingers = episode.meta.robot.fingers(episode.robot.joint_positions[0], episode.robot.joint_names)
+    got = policy.predict(frames_of(episode, 0), episode.instruction["text"], gripper_open=True, finger_positions=fingers)
+    assert got == expected(run_dir, episode, 0)  # same cloud, same observation, same keyframe
+    # depth in millimetres (uint16) gives a cloud within half a millimetre: the same keyframe or a neighbouring voxel
+    mm = policy.predict(frames_of(episode, 0, millimetres=True), episode.instruction["text"], gripper_open=True,
+                        finger_positions=fingers, task="stack_cube")
+    assert np.linalg.norm(np.subtract(mm.position, got.position)) < 0.02 and mm.gripper_open == got.gripper_open
+
+
+def test_exported_folder_predicts_like_the_checkpoint(tiny_checkpoint, episode, tmp_path):
+    run_dir, _ = tiny_checkpoint
+    export_policy(str(run_dir), "onnx", str(tmp_path / "policy"), max_points=20000)
+    fingers = episode.meta.robot.fingers(episode.robot.joint_positions[0], episode.robot.joint_names)
+    args = (frames_of(episode, 0), episode.instruction["text"], True, fingers)
+    exported, checkpoint = KeyframePolicy.load(tmp_path / "policy").predict(*args), KeyframePolicy.load(run_dir).predict(*args)
+    assert np.linalg.norm(np.subtract(exported.position, checkpoint.position)) < 0.001
+    assert np.allclose(np.abs(np.dot(exported.quaternion, checkpoint.quaternion)), 1.0, atol=1e-5)
+    assert (exported.gripper_open, exported.ignore_collisions) == (checkpoint.gripper_open, checkpoint.ignore_collisions)
+    # the example runs on it, as a user would
+    r = subprocess.run([sys.executable, str(EXAMPLE), str(tmp_path / "policy"), str(episode.path)], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert np.allclose(json.loads(r.stdout)["position"], exported.position, atol=0.02)
+
+
+def test_bad_deployment_input(tiny_checkpoint, episode, tmp_path):
+    run_dir, _ = tiny_checkpoint
+    policy = KeyframePolicy.load(run_dir)
+    with pytest.raises(UserError, match="inside the scene bounds"):
+        policy.predict(frames_of(episode, 0), "stack", True, scene_bounds=[5, 5, 5, 6, 6, 6])
+    with pytest.raises(UserError, match="give task="):
+        policy.predict(frames_of(episode, 0), "stack", True, task="fold_laundry")
+    (tmp_path / "fake").mkdir()
+    (tmp_path / "fake" / "manifest.json").write_text("{}")
+    with pytest.raises(UserError, match="not a policy written by `rvt2 export`"):
+        KeyframePolicy.load(tmp_path / "fake")
