@@ -1,37 +1,82 @@
-"""The table and bar chart of docs/RESULTS.md, from `rvt2 eval` reports and the expert's success.
+"""The table and bar chart of docs/RESULTS.md, from `rvt2 eval` reports and the oracle benchmark.
 
-    python -m benchmarks.results_table --policy "LABEL=EVAL_DIR" [--policy ...] --oracle EVAL_DIR \
-        --expert expert.json [--chart docs/results.png] [--json benchmarks/results/results.json]
+    python -m benchmarks.results_table --policy "LABEL=EVAL_DIR[+EVAL_DIR...]" [--policy ...] \
+        (--oracle-bench oracle.json | --oracle EVAL_DIR --expert expert.json) \
+        [--previous "LABEL=results.json"] [--chart docs/results.png] [--json benchmarks/results/results.json]
 
-EVAL_DIR is an `rvt2 eval --out` folder (its eval.json); the --oracle one was run with `--oracle`;
-expert.json is `python -m benchmarks.record_bench --first-seed 10000 --seeds 25 --episodes 0 --json ...`.
-The last column compares the first --policy with the oracle.
+EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluation over all their seeds
+(their episode records are merged and summarised by the same code `rvt2 eval` uses). oracle.json is
+`python -m benchmarks.oracle_bench --json ...` (oracle and expert on the same seeds); the older pair
+--oracle/--expert takes an `rvt2 eval --oracle` folder and `benchmarks.record_bench --json` output.
+--previous adds the policy columns of an earlier results.json for comparison. The last column
+compares the first --policy with the oracle.
 """
 
 import argparse
 import json
 from pathlib import Path
 
-
-def _rate(report: dict, task: str, source: str) -> dict:
-    entry = report["tasks"][task][source]
-    return {"successes": entry["successes"], "episodes": entry["episodes"], "rate": entry["success_rate"],
-            "ci95": entry["ci95"], "failures": entry["failures"]}
+from rvt2cli.eval.report import build_report, wilson_interval
 
 
-def collect(policies: dict[str, dict], oracle: dict, expert: dict) -> dict:
-    expert_by_task = {e["task"]: e for e in expert["expert"]}
+def load_policy(dirs: str) -> dict:
+    """One report from one or more eval folders (their episodes merged)."""
+    records, seeds = [], []
+    for folder in dirs.split("+"):
+        report = json.loads((Path(folder) / "eval.json").read_text())
+        records += [e for e in report["episodes"] if e["source"] == "policy"]
+        seeds.append(report["seed"])
+    per_task = len({r["seed"] for r in records if r["task"] == records[0]["task"]})
+    return build_report(records, {"seed": min(seeds), "episodes_per_task": per_task})
+
+
+def _rate(successes: int, episodes: int) -> dict:
+    return {"successes": successes, "episodes": episodes, "rate": successes / episodes if episodes else 0.0,
+            "ci95": list(wilson_interval(successes, episodes))}
+
+
+def collect(policies: dict[str, dict], oracle: dict[str, dict], expert: dict[str, dict], previous: dict) -> dict:
     rows = []
-    for task in sorted(oracle["tasks"]):
-        rows.append({"task": task, "policies": {label: _rate(report, task, "policy") for label, report in policies.items()},
-                     "oracle": _rate(oracle, task, "oracle"),
-                     "expert": {"rate": expert_by_task[task]["success"], "episodes": expert_by_task[task]["seeds"]}})
-    average = {label: sum(r["policies"][label]["rate"] for r in rows) / len(rows) for label in policies}
+    for task in sorted(oracle):
+        entry = {"task": task, "policies": {}, "oracle": oracle[task], "expert": expert[task]}
+        for label, report in policies.items():
+            p = report["tasks"][task]["policy"]
+            entry["policies"][label] = {**_rate(p["successes"], p["episodes"]), "failures": p["failures"],
+                                        "unreached": p["unreached_keyframes"], "replans": p["replans"]}
+        for label, rows_before in previous.items():
+            entry["policies"][label] = rows_before[task]
+        rows.append(entry)
+    labels = list(policies) + list(previous)
+    average = {label: sum(r["policies"][label]["rate"] for r in rows) / len(rows) for label in labels}
     average["oracle"] = sum(r["oracle"]["rate"] for r in rows) / len(rows)
     average["expert"] = sum(r["expert"]["rate"] for r in rows) / len(rows)
     first = next(iter(policies.values()))
-    return {"seeds": f"{first['seed']}-{first['seed'] + first['episodes_per_task'] - 1}", "labels": list(policies),
+    return {"seeds": f"{first['seed']}-{first['seed'] + first['episodes_per_task'] - 1}", "labels": labels,
             "rows": rows, "average": average}
+
+
+def from_oracle_bench(path: str) -> tuple[dict, dict]:
+    bench = json.loads(Path(path).read_text())
+    oracle, expert = {}, {}
+    for t in bench["tasks"]:
+        oracle[t["task"]] = {**_rate(sum(t["oracle_per_seed"]), t["seeds"]), "agreement": t["agreement"]}
+        expert[t["task"]] = _rate(sum(s == "success" for s in t["expert_per_seed"]), t["seeds"])
+    return oracle, expert
+
+
+def from_eval_and_record(oracle_dir: str, expert_path: str) -> tuple[dict, dict]:
+    report = json.loads((Path(oracle_dir) / "eval.json").read_text())
+    expert_json = json.loads(Path(expert_path).read_text())
+    oracle = {t: _rate(v["oracle"]["successes"], v["oracle"]["episodes"]) for t, v in report["tasks"].items()}
+    expert = {e["task"]: _rate(round(e["success"] * e["seeds"]), e["seeds"]) for e in expert_json["expert"]}
+    return oracle, expert
+
+
+def load_previous(arg: str) -> tuple[str, dict]:
+    label, path = arg.split("=", 1)
+    results = json.loads(Path(path).read_text())
+    first = results["labels"][0]
+    return label, {r["task"]: r["policies"][first] for r in results["rows"]}
 
 
 def markdown(results: dict) -> str:
@@ -46,7 +91,7 @@ def markdown(results: dict) -> str:
         first = r["policies"][labels[0]]["rate"]
         ratio = f"{first / r['oracle']['rate']:.2f}" if r["oracle"]["rate"] else "-"
         lines.append(f"| {r['task']} | " + " | ".join(cell(r["policies"][label]) for label in labels)
-                     + f" | {cell(r['oracle'])} | {r['expert']['rate']:.0%} | {ratio} |")
+                     + f" | {cell(r['oracle'])} | {cell(r['expert'])} | {ratio} |")
     a = results["average"]
     lines.append("| **average** | " + " | ".join(f"**{a[label]:.0%}**" for label in labels)
                  + f" | **{a['oracle']:.0%}** | **{a['expert']:.0%}** | |")
@@ -71,7 +116,7 @@ def chart(results: dict, path: Path) -> None:
     ax.set_xticks(x, tasks, rotation=15)
     ax.set_ylabel("success (%)")
     ax.set_ylim(0, 115)
-    ax.set_title(f"Closed-loop success, 25 unseen seeds per task ({results['seeds']})")
+    ax.set_title(f"Closed-loop success on unseen seeds ({results['seeds']})")
     ax.legend(ncol=len(series), fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -79,15 +124,20 @@ def chart(results: dict, path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--policy", action="append", required=True, metavar="LABEL=EVAL_DIR")
-    parser.add_argument("--oracle", required=True, metavar="EVAL_DIR")
-    parser.add_argument("--expert", required=True)
+    parser.add_argument("--policy", action="append", required=True, metavar="LABEL=EVAL_DIR[+EVAL_DIR]")
+    parser.add_argument("--oracle-bench", metavar="ORACLE_JSON")
+    parser.add_argument("--oracle", metavar="EVAL_DIR")
+    parser.add_argument("--expert")
+    parser.add_argument("--previous", action="append", default=[], metavar="LABEL=RESULTS_JSON")
     parser.add_argument("--chart")
     parser.add_argument("--json")
     args = parser.parse_args()
-    load = lambda folder: json.loads((Path(folder) / "eval.json").read_text())  # noqa: E731
-    policies = {label: load(folder) for label, folder in (p.split("=", 1) for p in args.policy)}
-    results = collect(policies, load(args.oracle), json.loads(Path(args.expert).read_text()))
+    policies = {label: load_policy(dirs) for label, dirs in (p.split("=", 1) for p in args.policy)}
+    if args.oracle_bench:
+        oracle, expert = from_oracle_bench(args.oracle_bench)
+    else:
+        oracle, expert = from_eval_and_record(args.oracle, args.expert)
+    results = collect(policies, oracle, expert, dict(load_previous(p) for p in args.previous))
     print(markdown(results))
     if args.chart:
         chart(results, Path(args.chart))

@@ -1,19 +1,22 @@
 #!/usr/bin/env bash
-# The whole experiment on one GPU machine: record 8 tasks x 25 demos, train the paper configuration,
-# evaluate 8 x 25 episodes closed-loop, with every phase timed. Written for this workplace's lent GPU
-# machine (python3 3.12 with CUDA torch and numpy 2, no network, 64 MiB carried in per call, 10 min per
-# command, /tmp kept while the machine stays warm); on your own GPU workstation run the two commands of
-# README.md ("On a GPU workstation") instead.
+# The whole experiment on one GPU machine: record 8 tasks x 25 demos, train the paper configuration
+# (on one GPU or, with NPROC=2, on two through torchrun), evaluate closed-loop and offline, with every
+# phase timed. Written for this workplace's lent GPU machine (python3 3.12 with CUDA torch and numpy 2,
+# no network, 64 MiB carried in per call, 10 min per command, /tmp kept while the machine stays warm);
+# on your own GPU workstation run the two commands of README.md ("On a GPU workstation") instead.
 #
-# Here:    bash scripts/pack_gpu_wheels.sh            # -> .gpu/site.part.* (60 MiB each) + site.sha256
-# There, one call per line, each carrying .gpu with the parts not sent yet:
-#   bash scripts/gpu_onebox.sh stash                  # keep the carried parts in /tmp/w
-#   bash scripts/gpu_onebox.sh setup bench record     # unpack, check the GPU renders, time the step, record
-#   bash scripts/gpu_onebox.sh train                  # train in the background (BATCH, STEPS, LR below)
-#   bash scripts/gpu_onebox.sh wait eval              # wait for training, then evaluate on the GPU
-#   bash scripts/gpu_onebox.sh results                # phase times, logs, eval report -> $OUT/results.tgz
+# Here:    bash scripts/pack_gpu_wheels.sh            # -> .gpu/site.part.* (56 MiB each) + site.sha256
+# There, one call per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders):
+#   bash scripts/gpu_onebox.sh stash                  # keep the carried parts (and data/heldout) in /tmp/w
+#   bash scripts/gpu_onebox.sh stash setup record     # unpack, check the GPU renders, record (heldout: 30000+)
+#   bash scripts/gpu_onebox.sh bg main train ddpbench # in the background: train RUN, then the DDP benchmark
+#   bash scripts/gpu_onebox.sh wait main eval offline # wait for it, evaluate on the GPU, score held-out demos
+#   bash scripts/gpu_onebox.sh results                # phase times, logs, reports of RUNS -> $OUT/results.tgz
 #   bash scripts/gpu_onebox.sh weights FIRST COUNT    # float16 weight pieces FIRST.. (and meta.tar with 0) to $OUT
 # Here:    tar -xf meta.tar in the pieces' folder; python scripts/gpu_checkpoint.py restore PIECES_DIR runs/NAME
+# Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
+# "--compile --seed 1", "--episodes-per-task 10 --cameras front"), EVAL_EPISODES, WORKERS, RUNS (results).
+# scripts/gpu_results_v2.sh holds the exact calls behind docs/RESULTS.md v2.
 set -euo pipefail
 W=${W:-/tmp/w}
 SITE=${SITE:-/tmp/site}
@@ -22,10 +25,14 @@ EPISODES=${EPISODES:-25}
 TASKS=${TASKS:-"insert_peg plug_charger place_sphere lift_peg_upright stack_cube pick_cube push_cube pull_cube"}
 RUN=${RUN:-onebox}
 BATCH=${BATCH:-192}
-STEPS=${STEPS:-4000}
+STEPS=${STEPS:-1100}
+NPROC=${NPROC:-1}
+EVAL_EPISODES=${EVAL_EPISODES:-50}
+RUNS=${RUNS:-$RUN}
+HELDOUT=${HELDOUT:-data/heldout}   # held-out demos (recorded here with seeds the training never saw), carried in
 CONFIG=${CONFIG:-rvt2}
 DEVICE=${DEVICE:-cuda}
-WAIT_S=${WAIT_S:-560}
+WAIT_S=${WAIT_S:-560}   # how long `wait` waits inside one call
 OUT=${OUT:-/tmp/rvt2-out}
 mkdir -p "$W" "$OUT"
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 RVT2_EMBEDDINGS=$SITE/embeddings.safetensors
@@ -40,10 +47,13 @@ phase() {  # NAME SECONDS: one line per phase in $W/phases.tsv
   printf '%s\t%.1f\n' "$1" "$2" | tee -a "$W/phases.tsv"
 }
 
-for step in "$@"; do
+while [ $# -gt 0 ]; do
+  step=$1
+  shift
   case $step in
   stash)
     cp .gpu/site.part.* .gpu/site.sha256 "$W/" 2>/dev/null || true
+    if [ -d "$HELDOUT" ]; then mkdir -p "$W/heldout" && cp "$HELDOUT"/* "$W/heldout/"; fi
     ls -l "$W"
     ;;
   setup)
@@ -74,42 +84,82 @@ for step in "$@"; do
     "${RVT2[@]}" extract-keyframes "$W/demos" | tail -1
     phase record $(( $(clock) - t ))
     ;;
-  train)  # in the background: a later call waits for it
-    rm -rf "$W/runs/$RUN" "$W/train.done"
-    cat > "$W/train.sh" <<EOF
-t=\$(date +%s)
-${RVT2[*]} train --data $W/demos --out $W/runs/$RUN --config $CONFIG --batch-size $BATCH --steps $STEPS \
-  --warmup $((STEPS / 10)) --val-episodes 1 --val-every $((STEPS / 4)) --save-every $((STEPS / 4)) --no-progress ${TRAIN_ARGS---compile}
-echo "train \$? \$(( \$(date +%s) - t ))" > $W/train.done
-EOF
-    (cd "$PWD" && setsid nohup bash "$W/train.sh" > "$W/train.log" 2>&1 < /dev/null &)
-    sleep "${START_WAIT:-60}"
-    cat "$W/train.log"
+  heldout)  # held-out demos for offline scores: HELDOUT_TASKS x 5 from seed 30000 (training demos use 0 upwards)
+    t=$(clock)
+    for task in ${HELDOUT_TASKS:-insert_peg plug_charger}; do
+      "${RVT2[@]}" record --task "$task" --episodes 5 --seed 30000 --workers "$WORKERS" --out "$W/heldout" --no-progress 2>&1 | tail -1
+    done
+    "${RVT2[@]}" extract-keyframes "$W/heldout" | tail -1
+    phase heldout $(( $(clock) - t ))
     ;;
-  wait)
-    while [ ! -f "$W/train.done" ] && [ "$SECONDS" -lt "$WAIT_S" ]; do sleep 5; done
-    tail -5 "$W/train.log"
-    if [ ! -f "$W/train.done" ]; then echo "training still running"; exit 3; fi
-    read -r _ rc seconds < "$W/train.done"
-    phase train "$seconds"
-    tail -2 "$W/runs/$RUN/train.csv"
-    [ "$rc" = 0 ]
+  train)  # RUN on NPROC GPUs (torchrun when more than one), BATCH samples per step in all
+    t=$(clock)
+    rm -rf "$W/runs/$RUN"
+    launch=("${RVT2[@]}")
+    if [ "$NPROC" -gt 1 ]; then launch=(python3 -m torch.distributed.run --standalone --nproc-per-node "$NPROC" -m rvt2cli); fi
+    # shellcheck disable=SC2086  # TRAIN_ARGS is a list of options
+    "${launch[@]}" train --data "$W/demos" --out "$W/runs/$RUN" --config "$CONFIG" --batch-size $((BATCH / NPROC)) \
+      --steps "$STEPS" --warmup $((STEPS / 10)) --val-episodes 1 --val-every $((STEPS / 4)) --save-every $((STEPS / 4)) \
+      --no-progress ${TRAIN_ARGS---compile} 2>&1 | tee "$W/train_$RUN.log" | grep -v "^step " | tail -4
+    phase "train_$RUN" $(( $(clock) - t ))
+    tail -1 "$W/runs/$RUN/train.csv"
+    ;;
+  ddpbench)  # the training loop on 1 GPU against RUN's NPROC GPUs at the same per-GPU batch; kill-and-resume
+    t=$(clock)
+    [ -f "$W/samples.safetensors" ] || "${RVT2[@]}" pack-samples "$W/demos" --out "$W/samples.safetensors" --no-progress
+    python3 -m benchmarks.ddp_bench --data "$W/samples.safetensors" --gpus "$NPROC" --batch-size $((BATCH / NPROC)) --compile \
+      --steps 100 --multi-gpu-run "$W/runs/$RUN" --resume-check --work "$W/ddp" --json "$W/ddp_bench.json" 2>&1 | tail -30
+    phase ddpbench $(( $(clock) - t ))
+    ;;
+  bg)  # bg NAME PHASE...: run these phases in the background (from a copy of this tree); `wait NAME` waits
+    name=$1
+    shift
+    rm -rf "$W/bg_$name" "$W/$name.done"
+    mkdir -p "$W/bg_$name" && tar -cf - --exclude=.gpu --exclude=data . | tar -x -C "$W/bg_$name"
+    command="scripts/gpu_onebox.sh $*"
+    if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script (scripts/gpu_results_v2.sh)
+    (cd "$W/bg_$name" && setsid nohup bash -c "t=\$(date +%s); bash $command; echo \$? \$(( \$(date +%s) - t )) > $W/$name.done" \
+      > "$W/$name.log" 2>&1 < /dev/null &)
+    sleep "${START_WAIT:-5}"
+    cat "$W/$name.log"
+    break  # the rest of the line ran in the background
+    ;;
+  wait)  # wait NAME: until the background phases NAME end (at most WAIT_S seconds in this call)
+    name=$1
+    shift
+    while [ ! -f "$W/$name.done" ] && [ "$SECONDS" -lt "$WAIT_S" ]; do sleep 5; done
+    tail -25 "$W/$name.log"
+    if [ ! -f "$W/$name.done" ]; then echo "$name still running"; exit 3; fi
+    read -r rc _ < "$W/$name.done"
+    [ "$rc" = 0 ] || { echo "$name failed ($rc)"; exit 4; }
     ;;
   eval)
     t=$(clock)
-    "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --episodes "$EPISODES" --workers "$WORKERS" --device "$DEVICE" \
-      --out "$W/eval_$RUN" --no-progress 2>&1 | tail -12
-    phase eval $(( $(clock) - t ))
+    "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --episodes "$EVAL_EPISODES" --seed 10000 --workers "$WORKERS" \
+      --device "$DEVICE" --out "$W/eval_$RUN" --no-progress 2>&1 | tail -12
+    phase "eval_$RUN" $(( $(clock) - t ))
+    ;;
+  offline)  # millimetres on the held-out demos in $W/heldout (carried from $HELDOUT by stash, or the heldout phase)
+    t=$(clock)
+    "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --offline "$W/heldout" --device "$DEVICE" --out "$W/offline_$RUN" \
+      --no-progress 2>&1 | tail -12
+    phase "offline_$RUN" $(( $(clock) - t ))
     ;;
   results)  # every small result in one file (a call returns at most 8 files)
-    cp "$W/phases.tsv" "$W/train.log" "$OUT/" 2>/dev/null || true
-    tar -czf "$OUT/results.tgz" -C "$W" phases.tsv train.log runs/$RUN/train.csv runs/$RUN/validation.csv runs/$RUN/run.json \
-      eval_$RUN/eval.json eval_$RUN/eval.md eval_$RUN/episodes.jsonl 2>/dev/null || true
+    cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
+    files=(phases.tsv ddp_bench.json)
+    for run in $RUNS; do
+      files+=("train_$run.log" "runs/$run/train.csv" "runs/$run/validation.csv" "runs/$run/run.json" "eval_$run/eval.json"
+              "eval_$run/eval.md" "eval_$run/episodes.jsonl" "offline_$run/offline.json" "offline_$run/offline.md")
+    done
+    (cd "$W" && { ls -d "${files[@]}" 2>/dev/null || true; } | tar -czf "$OUT/results.tgz" -T -)
+    tar -tzf "$OUT/results.tgz"
     cp "$OUT/results.tgz" "$W/" 2>/dev/null || true
     ls -l "$OUT"
     ;;
   weights)  # weight pieces FIRST..FIRST+COUNT-1 (float16, 15 MiB each; at most 7 per call) and, with 0, the config
-    first=$2 count=$3
+    first=$1 count=$2
+    shift 2
     [ -d "$W/export/$RUN" ] || python3 scripts/gpu_checkpoint.py shrink "$W/runs/$RUN" "$W/export/$RUN"
     mkdir -p "$OUT/$RUN"
     for i in $(seq "$first" $((first + count - 1))); do
@@ -121,7 +171,7 @@ EOF
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|bench|record|train|wait|eval|results|weights FIRST COUNT" >&2
+    echo "usage: $0 stash|setup|bench|record|heldout|train|ddpbench|eval|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
     exit 2
     ;;
   esac

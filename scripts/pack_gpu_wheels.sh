@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Pack what rvt2 needs on the lent GPU machine (Python 3.12, CUDA torch, numpy 2, no network) into
-# .gpu/site.part.* (each under the 64 MiB a call may carry), for scripts/gpu_onebox.sh.
+# .gpu/site.part.* (56 MiB each: a call carries 64 MiB, the working tree included), for scripts/gpu_onebox.sh.
 #
 # The simulator stack (SAPIEN, ManiSkill, mplib with numpy 1.26: mplib 0.1.1 crashes with numpy 2),
-# the MCAP libraries and warp, as wheels for cp312, unpacked into one folder and stripped of what rvt2
-# never loads (other robots' meshes, SAPIEN's headers, warp's examples and tests, IPython).
+# the MCAP libraries, warp, scipy (the image's scipy wants numpy 2) and IPython (ManiSkill imports it), as
+# wheels for cp312, unpacked into one folder and stripped of what rvt2 never loads (other robots' meshes,
+# SAPIEN's headers, warp's examples and tests).
 # The text encoder (88 MB) stays here: .gpu/embeddings.safetensors carries every task's instructions
 # (scripts/embed_instructions.py, read through RVT2_EMBEDDINGS).
 set -euo pipefail
@@ -17,7 +18,10 @@ WHEELS=(
   arm_pytorch_utilities==0.5.0 pytorch-seed==0.2.0 importlib_resources==7.1.0 pyperclip==1.11.0
   mcap==1.6.0 mcap-protobuf-support==0.6.0 foxglove-schemas-protobuf==0.4.0 zstandard==0.25.0
   jsonschema==4.26.0 jsonschema-specifications==2025.9.1 referencing==0.37.0 rpds-py==2026.9.1
-  warp-lang==1.19.0
+  warp-lang==1.19.0 scipy==1.17.1
+  ipython==9.18.1 ipython_pygments_lexers==1.1.1 asttokens==3.0.2 decorator==5.3.1 executing==2.3.0 jedi==0.20.1
+  matplotlib_inline==0.2.2 parso==0.8.7 pexpect==4.9.0 prompt_toolkit==3.0.53 ptyprocess==0.7.0 pure_eval==0.2.4
+  stack_data==0.6.3 traitlets==5.16.1 wcwidth==0.9.4
 )
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
@@ -38,6 +42,6 @@ mkdir "$work/site"
 $PY scripts/embed_instructions.py --out "$work/site/embeddings.safetensors"
 mkdir -p .gpu
 rm -f .gpu/site.part.*
-tar -cf - -C "$work/site" . | xz -T2 -9 | split -b 60m - .gpu/site.part.
+tar -cf - -C "$work/site" . | xz -T2 -9 | split -b 56m - .gpu/site.part.
 (cd .gpu && sha256sum site.part.* > site.sha256)
 ls -la .gpu/site.part.*

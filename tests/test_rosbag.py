@@ -150,7 +150,8 @@ def test_rosbag2_folder_imports_after_the_existing_episodes(sim_episode, importe
     assert_same_cloud(sim_episode, b, 0, tolerance=1e-4)
 
 
-def test_training_runs_on_imported_episodes(imported, tmp_path):
+def test_training_and_offline_precision_on_imported_episodes(imported, tmp_path):
+    from rvt2cli.eval.offline import evaluate_offline
     from rvt2cli.keyframes.extract import extract_file
     from rvt2cli.train.trainer import TrainOptions, train
 
@@ -161,6 +162,9 @@ def test_training_runs_on_imported_episodes(imported, tmp_path):
     result = train(TrainOptions(data=[str(data)], out=str(tmp_path / "run"), steps=3, save_every=3, **TINY_TRAIN),
                    say=lambda *_: None)
     assert result.steps == 3 and all(np.isfinite(result.losses))
+    report = evaluate_offline(str(tmp_path / "run"), [str(data)], tmp_path / "offline", progress=False)
+    task = report["tasks"][imported.meta.task]
+    assert task["samples"] > 0 and np.isfinite(task["stage2_mm"]["median"]) and (tmp_path / "offline" / "offline.md").is_file()
 
 
 # --- bags edited message by message: what goes wrong in recordings -------------------------------

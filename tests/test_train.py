@@ -109,8 +109,7 @@ def test_torchrun_trains_with_two_processes(tiny_dataset, tmp_path):
     assert load_checkpoint(out).info["step"] == 3
 
 
-def _torchrun(out, *extra, steps=12):
-    import os
+def _torchrun(out, *extra):
     import sys
     from pathlib import Path
 

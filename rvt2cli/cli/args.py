@@ -73,6 +73,7 @@ def names(text: str) -> tuple[str, ...]:
     return tuple(t.strip() for t in text.split(",") if t.strip())
 
 
+POSITIVE = number(0.0, exclusive_minimum=True)  # lengths, times, thresholds, learning rates
 COUNT = integer(minimum=1)          # episodes, steps, workers, batch size, ...
 NON_NEGATIVE = integer(minimum=0)   # seeds, frames, held-out episodes, ...
 SEED = integer(minimum=0, maximum=2**31 - 1)

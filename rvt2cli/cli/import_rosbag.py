@@ -1,11 +1,11 @@
 """`rvt2 import-rosbag`: real-robot demonstrations (ROS 2 bags in MCAP) -> rvt2 episode files."""
 
-from rvt2cli.cli.args import COUNT, names, number, numbers
+from rvt2cli.cli.args import COUNT, POSITIVE, names, numbers
 from rvt2cli.errors import UserError
+from rvt2cli.robot import PANDA
 
 BOUNDS_HINT = ("the workspace box in the robot's base frame, in metres, that holds everything the task touches, "
                "e.g. 0.2,-0.4,-0.05,0.9,0.4,0.5 for a tabletop in front of a Panda (docs/REAL_ROBOT.md: choosing scene bounds)")
-POSITIVE = number(minimum=0.0, exclusive_minimum=True)
 
 
 def register(subparsers) -> None:
@@ -32,9 +32,9 @@ def register(subparsers) -> None:
     p.add_argument("--camera-info-topic", default="color/camera_info",
                    help="colour camera_info topic, relative to the prefix (default color/camera_info)")
     p.add_argument("--joint-states", default="/joint_states", help="sensor_msgs/JointState topic (default /joint_states)")
-    p.add_argument("--arm-joints", type=names, default=tuple(f"panda_joint{i}" for i in range(1, 8)),
+    p.add_argument("--arm-joints", type=names, default=PANDA.arm_joints,
                    help="comma-separated arm joint names (default panda_joint1..panda_joint7)")
-    p.add_argument("--finger-joints", type=names, default=("panda_finger_joint1", "panda_finger_joint2"),
+    p.add_argument("--finger-joints", type=names, default=PANDA.finger_joints,
                    help="comma-separated finger joint names; the gripper width is the sum of their positions")
     p.add_argument("--base-frame", default="panda_link0",
                    help="TF frame of the robot base: the episode's world frame (default panda_link0)")

@@ -2,7 +2,7 @@
 
 import sys
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, number
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE
 from rvt2cli.errors import UserError
 
 
@@ -17,10 +17,10 @@ def register(subparsers) -> None:
     )
     p.add_argument("files", nargs="+", metavar="FILE", help="episode .mcap files or folders of them")
     p.add_argument("--dry-run", action="store_true", help="only report; write nothing")
-    p.add_argument("--stop-velocity", type=number(0.0, exclusive_minimum=True), default=d.stop_velocity,
+    p.add_argument("--stop-velocity", type=POSITIVE, default=d.stop_velocity,
                    help=f"rad/s: the arm has stopped where every arm joint becomes slower than this (default {d.stop_velocity}; "
                         "PerAct/RVT use 0.1 on RLBench, which fires a step or three early at ManiSkill's 20 Hz)")
-    p.add_argument("--pause-velocity", type=number(0.0, exclusive_minimum=True), default=d.pause_velocity,
+    p.add_argument("--pause-velocity", type=POSITIVE, default=d.pause_velocity,
                    help=f"rad/s: a stretch slower than this between two motions that never gets slower than --stop-velocity "
                         f"is a keyframe at its slowest frame (default {d.pause_velocity})")
     p.add_argument("--stop-buffer", type=NON_NEGATIVE, default=d.stop_buffer,

@@ -1,6 +1,6 @@
 """`rvt2 record`: scripted-expert demonstrations in ManiSkill/SAPIEN -> MCAP episodes."""
 
-from rvt2cli.cli.args import COUNT, SEED, integer, names, number
+from rvt2cli.cli.args import COUNT, POSITIVE, SEED, integer, names
 
 
 def register(subparsers) -> None:
@@ -20,7 +20,7 @@ def register(subparsers) -> None:
                                      "'front' alone is the paper's single-camera setting)")
     p.add_argument("--image-size", type=integer(8, 2048), help="camera resolution (default: the task's, 128)")
     p.add_argument("--obs-every", type=COUNT, default=10, help="render the cameras every N frames besides keyframes (default 10)")
-    p.add_argument("--voxel-size", type=number(0.0, exclusive_minimum=True), help="downsample fused clouds to this voxel size in metres (default: no)")
+    p.add_argument("--voxel-size", type=POSITIVE, help="downsample fused clouds to this voxel size in metres (default: no)")
     p.add_argument("--store-clouds", action="store_true", help="also store the fused cloud (/points/world) for viewing in Foxglove")
     p.add_argument("--keep-failures", action="store_true", help="also keep episodes in which the expert failed")
     p.add_argument("--no-progress", action="store_true")

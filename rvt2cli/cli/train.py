@@ -2,7 +2,7 @@
 
 import argparse
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, SEED, integer, names, number
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names
 
 
 def register(subparsers) -> None:
@@ -18,10 +18,10 @@ def register(subparsers) -> None:
     p.add_argument("--data", nargs="+", metavar="PATH",
                    help="episode files or folders of them, or one sample cache written by `rvt2 pack-samples`")
     p.add_argument("--out", required=True, help="run folder (checkpoints, train.csv, validation.csv, tb/)")
-    p.add_argument("--config", help=f"model config: rvt2 (the paper, default), small (CPU), rvt (RVT-1-like ablation)")
+    p.add_argument("--config", help="model config: rvt2 (the paper, default), small (CPU), rvt (RVT-1-like ablation)")
     p.add_argument("--steps", type=COUNT, help=f"optimizer steps (default {T.steps})")
     p.add_argument("--batch-size", type=COUNT, help=f"per device (default {T.batch_size}, as the paper)")
-    p.add_argument("--lr", type=number(0.0, exclusive_minimum=True), help="peak learning rate (default 1.25e-5 x total batch, as the paper)")
+    p.add_argument("--lr", type=POSITIVE, help="peak learning rate (default 1.25e-5 x total batch, as the paper)")
     p.add_argument("--warmup", type=NON_NEGATIVE, help=f"warmup steps, at most a tenth of --steps (default {T.warmup})")
     p.add_argument("--max-points", type=integer(16), help=f"points per cloud, subsampled/padded (default {T.max_points})")
     p.add_argument("--no-augment", dest="augment", action="store_false", help="no translation/yaw augmentation (e.g. to overfit a tiny set)")

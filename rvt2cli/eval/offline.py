@@ -82,6 +82,8 @@ def markdown(report: dict) -> str:
         row(task, "all", entry)
         for keyframe, s in entry["keyframes"].items():
             row("", keyframe, s)
+        if "final_keyframe" in entry:
+            row("", "final", entry["final_keyframe"])
     row("**all**", "", report["overall"])
     return "\n".join(lines) + "\n"
 

@@ -29,6 +29,7 @@ class PackedSamples:
     lang: torch.Tensor         # [U, L, LANG_DIM]
     task: np.ndarray           # [S]
     keyframe_index: np.ndarray  # [S] which keyframe of its episode the target is (-1: unknown)
+    final_keyframe: np.ndarray  # [S] bool: the target is its episode's last keyframe
     target_position: np.ndarray    # [S, 3] world
     target_quaternion: np.ndarray  # [S, 4] xyzw
     target_gripper: np.ndarray     # [S] 1 = open
@@ -53,6 +54,7 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
     workspaces = [Workspace.from_bounds(samples.bounds[t]) for t in samples.tasks]
     pick = np.asarray(indices, dtype=np.int64)
     keyframe_index = np.asarray(samples.keyframe_index if samples.keyframe_index else [-1] * len(samples), np.int64)
+    final_keyframe = np.asarray(samples.final_keyframe if samples.final_keyframe else [False] * len(samples), bool)
     return PackedSamples(
         xyz=torch.from_numpy(xyz).to(device), rgb=torch.from_numpy(rgb).to(device), count=torch.from_numpy(count).to(device),
         proprio=torch.from_numpy(np.stack([samples.proprio[i] for i in indices])).to(device),
@@ -60,6 +62,7 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
         lang=lang.to(device),
         task=np.asarray(samples.task_index)[pick],
         keyframe_index=keyframe_index[pick],
+        final_keyframe=final_keyframe[pick],
         target_position=np.stack([samples.target_position[i] for i in indices]).astype(np.float64),
         target_quaternion=np.stack([samples.target_quaternion[i] for i in indices]),
         target_gripper=np.asarray(samples.target_gripper_open, np.int64)[pick],

@@ -5,7 +5,8 @@ recorded demos, without a simulator.
 Per sample: the translation error of stage 1 (the coarse point) and of stage 2 (the final point), the
 rotation error (geodesic angle between the predicted Euler-bin centre and the true orientation),
 and whether the gripper state and the collision flag are right. Summaries give the median, p90 and
-mean, overall, per task and per (task, keyframe index) (keyframe 0 = the first of an episode).
+mean, overall, per task, per (task, keyframe index) (keyframe 0 = the first of an episode), and per
+task for the episodes' final keyframes (the insertion, the placement: where precision decides).
 """
 
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ class Scores:
     collision_ok: np.ndarray    # bool
     task: np.ndarray            # task index per sample
     keyframe_index: np.ndarray  # -1: unknown
+    final: np.ndarray           # bool: the target is its episode's last keyframe (an insertion, a placement)
 
     def __len__(self) -> int:
         return len(self.stage2_mm)
@@ -59,6 +61,7 @@ def score_predictions(policy, packed: PackedSamples, indices=None, batch_size: i
         parts["collision_ok"].append((pred.ignore_collisions.long() == batch.collision).cpu().numpy())
         parts["task"].append(packed.task[idx])
         parts["keyframe_index"].append(packed.keyframe_index[idx])
+        parts["final"].append(packed.final_keyframe[idx])
         if progress:
             progress(len(idx))
     policy.train(was_training)
@@ -86,6 +89,8 @@ def precision_report(scores: Scores, task_names: list[str]) -> dict:
         entry = summarize(of_task)
         entry["keyframes"] = {str(k): summarize(of_task.subset(of_task.keyframe_index == k))
                               for k in sorted(set(of_task.keyframe_index.tolist())) if k >= 0}
+        if of_task.final.any():
+            entry["final_keyframe"] = summarize(of_task.subset(of_task.final))
         report["tasks"][task_names[t]] = entry
     return report
 

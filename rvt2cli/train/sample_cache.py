@@ -12,7 +12,7 @@ scene bounds (every fused point lies inside them), a step of at most 1/65535 of 
     rgb       [3, P] uint8
     offsets   [S + 1] int64   sample s owns points offsets[s]:offsets[s + 1]
     proprio, target_position, target_quaternion, target_gripper_open, target_ignore_collisions,
-    task_index, instruction_index, episode_index, keyframe_start, keyframe_index   [S, ...] per sample
+    task_index, instruction_index, episode_index, keyframe_start, keyframe_index, final_keyframe   [S, ...] per sample
     lang      [U, L, 384] float32   token embeddings of info["instructions"], in that order
 """
 
@@ -29,7 +29,7 @@ from rvt2cli.atomic import atomic_path, ensure_folder
 from rvt2cli.errors import UserError
 from rvt2cli.train.samples import SampleSet, load_samples, select_samples
 
-CACHE_FORMAT = 2  # 2: keyframe_index per sample (format 1 files read with keyframe_index -1, "unknown")
+CACHE_FORMAT = 2  # 2: keyframe_index, final_keyframe per sample (format 1 files read with -1, "unknown", and False)
 KEY = "rvt2_sample_cache"
 LEVELS = 65535
 
@@ -84,6 +84,7 @@ def save_sample_cache(samples: SampleSet, embeddings: dict[str, torch.Tensor], p
         "episode_index": np.asarray(samples.episode_index, np.int64),
         "keyframe_start": np.asarray(samples.keyframe_start, np.uint8),
         "keyframe_index": np.asarray(samples.keyframe_index, np.int64),
+        "final_keyframe": np.asarray(samples.final_keyframe, np.uint8),
         "lang": torch.stack([embeddings[t] for t in samples.instructions]).float().numpy(),
     }
     info = {"tasks": samples.tasks, "instructions": samples.instructions, "bounds": samples.bounds, "rigs": samples.rigs,
@@ -134,6 +135,7 @@ def load_sample_cache(path: str | Path) -> tuple[SampleSet, dict[str, torch.Tens
                         episodes=info["episodes"])
     offsets = tensors["offsets"]
     keyframe_index = tensors.get("keyframe_index", np.full(len(offsets) - 1, -1, np.int64))
+    final_keyframe = tensors.get("final_keyframe", np.zeros(len(offsets) - 1, np.uint8))
     for i in range(len(offsets) - 1):
         task = samples.tasks[int(tensors["task_index"][i])]
         b = np.asarray(samples.bounds[task], np.float64)
@@ -150,5 +152,6 @@ def load_sample_cache(path: str | Path) -> tuple[SampleSet, dict[str, torch.Tens
         samples.episode_index.append(int(tensors["episode_index"][i]))
         samples.keyframe_start.append(bool(tensors["keyframe_start"][i]))
         samples.keyframe_index.append(int(keyframe_index[i]))
+        samples.final_keyframe.append(bool(final_keyframe[i]))
     embeddings = {t: torch.from_numpy(tensors["lang"][u]) for u, t in enumerate(samples.instructions)}
     return samples, embeddings

@@ -33,6 +33,7 @@ class SampleSet:
     episode_index: list[int] = field(default_factory=list)
     keyframe_start: list[bool] = field(default_factory=list)       # observed at frame 0 or at a keyframe
     keyframe_index: list[int] = field(default_factory=list)        # which keyframe of its episode the target is (-1: unknown)
+    final_keyframe: list[bool] = field(default_factory=list)       # the target is its episode's last keyframe
     skipped_empty: int = 0
     skipped_failures: int = 0
 
@@ -43,7 +44,7 @@ class SampleSet:
         """These samples only (the task, instruction and episode tables are kept whole)."""
         per_sample = ["xyz", "rgb", "proprio", "target_position", "target_quaternion", "target_gripper_open",
                       "target_ignore_collisions", "task_index", "instruction_index", "episode_index", "keyframe_start",
-                      "keyframe_index"]
+                      "keyframe_index", "final_keyframe"]
         out = SampleSet(tasks=self.tasks, instructions=self.instructions, bounds=self.bounds, rigs=self.rigs,
                         episodes=self.episodes, skipped_empty=self.skipped_empty, skipped_failures=self.skipped_failures)
         for name in per_sample:
@@ -95,6 +96,7 @@ class SampleSet:
             self.episode_index.append(episode)
             self.keyframe_start.append(frame in starts)
             self.keyframe_index.append(k)
+            self.final_keyframe.append(k == len(annotation.keyframes) - 1)
             added += 1
         return added
 

@@ -13,7 +13,6 @@ sampling generator, counters: everything a checkpoint saves), `TrainStep` (rvt2c
 
 import csv
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -262,7 +261,8 @@ class RunLog:
                 self.tb.add_scalar(f"val/{key}", value, step)
         rows = []
         for task, entry in report["tasks"].items():
-            for keyframe, s in [("all", entry), *entry["keyframes"].items()]:
+            final = [("final", entry["final_keyframe"])] if "final_keyframe" in entry else []
+            for keyframe, s in [("all", entry), *entry["keyframes"].items(), *final]:
                 rows.append({"step": step, "task": task, "keyframe": keyframe, "samples": s["samples"],
                              "stage1_mm_median": s["stage1_mm"]["median"], "stage1_mm_p90": s["stage1_mm"]["p90"],
                              "stage2_mm_median": s["stage2_mm"]["median"], "stage2_mm_p90": s["stage2_mm"]["p90"],

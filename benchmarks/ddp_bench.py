@@ -1,0 +1,145 @@
+"""Several GPUs: `rvt2 train` under torchrun, its scaling and whether a killed run resumes exactly.
+
+    python -m benchmarks.ddp_bench --data DEMOS [--gpus 2] [--batch-size 96] [--steps 120] [--config rvt2]
+                                   [--compile] [--multi-gpu-run RUN_DIR] [--resume-check] [--resume-config small]
+                                   [--json out.json]
+
+Scaling: the real training loop (`python -m torch.distributed.run -m rvt2cli train`, the command a user
+runs) on 1 GPU and on --gpus GPUs at the same per-GPU batch; each run's samples/s is the median of its
+logged intervals after the first two (compilation, warm-up), read from its train.csv. Reported: both
+rates and their ratio (ideal: --gpus). --multi-gpu-run takes the several-GPU rate from a finished run of
+the same command (a full training run, say) instead of starting one.
+Resume check (--resume-check): a short run of --resume-config on --gpus processes, three times: straight,
+straight again (how far two identical runs on this hardware differ: GPU kernels with floating-point
+atomics are not bitwise repeatable), and killed after its first checkpoint, then continued with only
+`--resume`. Reported: the largest weight difference of each pair and whether the logged losses agree.
+On CPUs (gloo) the same check is a unit test (tests/test_train.py), where it is exact.
+"""
+
+import argparse
+import csv
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks.machine import describe
+from rvt2cli.train.checkpoint import load_checkpoint
+
+
+def train_command(processes: int, out: Path, args: list[str]) -> list[str]:
+    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(processes),
+            "-m", "rvt2cli", "train", "--out", str(out), "--no-progress", *args]
+
+
+def run(command: list[str]) -> None:
+    result = subprocess.run(command, capture_output=True, text=True)
+    if result.returncode != 0:
+        sys.exit(f"{' '.join(command)} failed:\n{result.stderr[-3000:]}")
+
+
+def logged(run_dir: Path) -> list[dict]:
+    with open(run_dir / "train.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def steady_rate(run_dir: Path) -> float:
+    rates = [float(row["samples_per_s"]) for row in logged(run_dir)[2:]]
+    if not rates:
+        sys.exit(f"{run_dir}: too few logged intervals for a rate; raise --steps")
+    return statistics.median(rates)
+
+
+def scaling(data: list[str], gpus: int, config: str, batch: int, steps: int, compile: bool, work: Path,
+            multi_gpu_run: Path | None) -> dict:
+    args = ["--data", *data, "--config", config, "--batch-size", str(batch), "--steps", str(steps), "--log-every", "10",
+            "--val-episodes", "0", "--save-every", str(steps), "--warmup", "10"] + (["--compile"] if compile else [])
+    rates = {}
+    if multi_gpu_run is not None:
+        rates[gpus] = steady_rate(multi_gpu_run)
+        print(f"{gpus} GPUs ({multi_gpu_run}): {rates[gpus]:.0f} samples/s", flush=True)
+    for processes in [p for p in (1, gpus) if p not in rates]:
+        started = time.perf_counter()
+        run(train_command(processes, work / f"scale_{processes}", args))
+        rates[processes] = steady_rate(work / f"scale_{processes}")
+        print(f"{processes} GPU(s), batch {batch} each: {rates[processes]:.0f} samples/s "
+              f"(run took {time.perf_counter() - started:.0f} s)", flush=True)
+    return {"config": config, "batch_per_gpu": batch, "steps": steps, "compiled": compile,
+            "samples_per_s": {str(k): rates[k] for k in sorted(rates)}, "scaling": rates[gpus] / rates[1], "ideal": gpus,
+            "multi_gpu_run": str(multi_gpu_run) if multi_gpu_run else None}
+
+
+def max_weight_difference(a: Path, b: Path) -> float:
+    wa, wb = load_checkpoint(a).weights, load_checkpoint(b).weights
+    return max(float((wa[k].float() - wb[k].float()).abs().max()) for k in wa)
+
+
+def losses(run_dir: Path) -> list[tuple[str, str]]:
+    return [(row["step"], row["loss"]) for row in logged(run_dir)]
+
+
+def resume_check(data: list[str], gpus: int, config: str, work: Path) -> dict:
+    steps, every = 24, 8
+    args = ["--data", *data, "--config", config, "--batch-size", "4", "--steps", str(steps), "--save-every", str(every),
+            "--log-every", "1", "--warmup", "2", "--val-episodes", "0", "--max-points", "20000"]
+    straight, again, killed = work / "straight", work / "again", work / "killed"
+    run(train_command(gpus, straight, args))
+    run(train_command(gpus, again, args))
+    proc = subprocess.Popen(train_command(gpus, killed, args), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    deadline = time.time() + 600
+    while not (killed / "last").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    killed_at = load_checkpoint(killed).info["step"]
+    run(train_command(gpus, killed, ["--resume"]))
+    result = {"config": config, "processes": gpus, "steps": steps, "killed_at_step": killed_at,
+              "resumed_to_step": load_checkpoint(killed).info["step"],
+              "max_weight_diff_straight_vs_again": max_weight_difference(straight, again),
+              "max_weight_diff_straight_vs_resumed": max_weight_difference(straight, killed),
+              "same_losses_straight_vs_again": losses(straight) == losses(again),
+              "same_losses_straight_vs_resumed": losses(straight) == losses(killed)}
+    print(json.dumps(result, indent=1), flush=True)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", nargs="+", required=True, help="recorded demos (with keyframes) or a sample cache")
+    parser.add_argument("--gpus", type=int, default=2)
+    parser.add_argument("--config", default="rvt2")
+    parser.add_argument("--batch-size", type=int, default=96, help="per GPU")
+    parser.add_argument("--steps", type=int, default=120)
+    parser.add_argument("--compile", action="store_true")
+    parser.add_argument("--multi-gpu-run", type=Path, help="take the --gpus rate from this finished run's train.csv")
+    parser.add_argument("--skip-scaling", action="store_true")
+    parser.add_argument("--resume-check", action="store_true")
+    parser.add_argument("--resume-config", default="small")
+    parser.add_argument("--work", help="folder for the runs (default: a temporary one)")
+    parser.add_argument("--json")
+    args = parser.parse_args()
+    if torch.cuda.is_available() and torch.cuda.device_count() < args.gpus:
+        sys.exit(f"this machine has {torch.cuda.device_count()} GPU(s); --gpus {args.gpus} needs that many")
+    gpus = [torch.cuda.get_device_name(i) for i in range(args.gpus)] if torch.cuda.is_available() else []
+    work = Path(args.work or tempfile.mkdtemp(prefix="ddp_bench_"))
+    work.mkdir(parents=True, exist_ok=True)
+    report = {"machine": {**describe(), "gpus": gpus}}
+    if args.resume_check:
+        report["resume"] = resume_check(args.data, args.gpus, args.resume_config, work)
+    if not args.skip_scaling:
+        report["scaling"] = scaling(args.data, args.gpus, args.config, args.batch_size, args.steps, args.compile, work,
+                                    args.multi_gpu_run)
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()

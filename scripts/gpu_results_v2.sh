@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The runs behind docs/RESULTS.md v2 beyond the first one-box run, on one machine with two GPUs (the lent
+# nvidia-h200-x2): record 8 tasks x 25 demos and held-out insert_peg/plug_charger demos (seeds 30000+);
+# train the 25-demo model's second seed on both GPUs (torchrun, the paper's batch 192 = 2 x 96); time the
+# loop on one GPU against it and check kill-and-resume on two ranks (benchmarks/ddp_bench.py); then the
+# 10-demo model and the 10-demo single-camera model, one per GPU at the same time (half the steps, as the
+# v1 10-demo run: steps in proportion to the data), while the second seed is evaluated; evaluate every
+# model closed-loop on seeds 10000-10049 and offline on the held-out demos.
+#
+# On a two-GPU workstation with rvt2 and its simulator installed: `bash scripts/gpu_results_v2.sh all`
+# (about 25 minutes on 2 x H200). On the lent machine, one device call per step: `stash` for each
+# .gpu/site.part.* piece but the last (scripts/pack_gpu_wheels.sh), `start` carrying the last piece and .gl,
+# then `collect` until it has everything (each call waits up to 9 minutes).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export WORKERS=${WORKERS:-28}
+onebox=scripts/gpu_onebox.sh
+case ${1:-all} in
+  stash) bash $onebox stash ;;
+  start) bash $onebox stash setup record heldout
+         bash "$0" bg ;;
+  bg) bash $onebox bg chain "$0" chain ;;  # the chain below, in the background
+  chain) RUN=seed1 NPROC=2 TRAIN_ARGS="--compile --seed 1" bash $onebox train ddpbench
+         RUN=demos10 STEPS=550 TRAIN_ARGS="--compile --episodes-per-task 10" CUDA_VISIBLE_DEVICES=0 bash $onebox bg demos10 train
+         RUN=front10 STEPS=550 TRAIN_ARGS="--compile --episodes-per-task 10 --cameras front" CUDA_VISIBLE_DEVICES=1 \
+           bash $onebox bg front10 train
+         RUN=seed1 bash $onebox eval offline
+         WAIT_S=100000 bash $onebox wait demos10 wait front10
+         for run in demos10 front10; do RUN=$run bash $onebox eval offline; done ;;
+  collect) WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
+           RUNS="seed1 demos10 front10" bash $onebox results ;;
+  all) bash $onebox setup record heldout && bash "$0" chain && RUNS="seed1 demos10 front10" bash $onebox results ;;
+  *) echo "usage: $0 stash|start|chain|collect|all" >&2; exit 2 ;;
+esac
