@@ -3,6 +3,7 @@
     python -m benchmarks.ddp_bench --data DEMOS [--gpus 2] [--batch-size 96] [--steps 120] [--config rvt2]
                                    [--compile] [--multi-gpu-run RUN_DIR] [--resume-check] [--resume-config small]
                                    [--json out.json]
+    python -m benchmarks.ddp_bench --compare-losses ONE_GPU_RUN MULTI_GPU_RUN [--json out.json]
 
 Scaling: the real training loop (`python -m torch.distributed.run -m rvt2cli train`, the command a user
 runs) on 1 GPU and on --gpus GPUs at the same per-GPU batch; each run's samples/s is the median of its
@@ -14,6 +15,10 @@ straight again (how far two identical runs on this hardware differ: GPU kernels 
 atomics are not bitwise repeatable), and killed after its first checkpoint, then continued with only
 `--resume`. Reported: the largest weight difference of each pair and whether the logged losses agree.
 On CPUs (gloo) the same check is a unit test (tests/test_train.py), where it is exact.
+Loss curves (--compare-losses): two finished runs at the same global batch, one GPU against several,
+compared on their logged steps: the largest and mean gap between their smoothed curves (moving average
+over --window rows), beside each run's own row-to-row noise around its smoothed curve. (Rank 0 logs
+the loss of its own share of the batch, so a several-GPU run's rows are noisier by design.)
 """
 
 import argparse
@@ -85,6 +90,30 @@ def losses(run_dir: Path) -> list[tuple[str, str]]:
     return [(row["step"], row["loss"]) for row in logged(run_dir)]
 
 
+def smoothed(values: list[float], window: int) -> list[float]:
+    return [statistics.fmean(values[max(0, i - window + 1):i + 1]) for i in range(len(values))]
+
+
+def compare_losses(one: Path, several: Path, window: int) -> dict:
+    curves = {}
+    for run_dir in (one, several):
+        curves[run_dir] = {int(row["step"]): float(row["loss"]) for row in logged(run_dir)}
+    steps = sorted(set(curves[one]) & set(curves[several]))
+    raw = {k: [curves[k][s] for s in steps] for k in curves}
+    smooth = {k: smoothed(v, window) for k, v in raw.items()}
+    later = [i for i, s in enumerate(steps) if s > steps[-1] // 10]  # after warmup
+    gap = [abs(smooth[one][i] - smooth[several][i]) for i in later]
+    noise = {k: statistics.fmean(abs(raw[k][i] - smooth[k][i]) for i in later) for k in raw}
+    tail = max(1, len(steps) // 10)
+    result = {"one_gpu_run": str(one), "multi_gpu_run": str(several), "window_rows": window, "steps_compared": len(steps),
+              "max_gap": max(gap), "mean_gap": statistics.fmean(gap),
+              "row_noise": {"one_gpu": noise[one], "multi_gpu": noise[several]},
+              "last_tenth_mean_loss": {"one_gpu": statistics.fmean(raw[one][-tail:]),
+                                       "multi_gpu": statistics.fmean(raw[several][-tail:])}}
+    print(json.dumps(result, indent=1), flush=True)
+    return result
+
+
 def resume_check(data: list[str], gpus: int, config: str, work: Path) -> dict:
     steps, every = 24, 8
     args = ["--data", *data, "--config", config, "--batch-size", "4", "--steps", str(steps), "--save-every", str(every),
@@ -113,7 +142,10 @@ def resume_check(data: list[str], gpus: int, config: str, work: Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", nargs="+", required=True, help="recorded demos (with keyframes) or a sample cache")
+    parser.add_argument("--data", nargs="+", help="recorded demos (with keyframes) or a sample cache")
+    parser.add_argument("--compare-losses", nargs=2, type=Path, metavar=("ONE_GPU_RUN", "MULTI_GPU_RUN"),
+                        help="only compare the loss curves of two finished runs")
+    parser.add_argument("--window", type=int, default=10, help="--compare-losses: moving-average rows")
     parser.add_argument("--gpus", type=int, default=2)
     parser.add_argument("--config", default="rvt2")
     parser.add_argument("--batch-size", type=int, default=96, help="per GPU")
@@ -126,6 +158,13 @@ def main() -> None:
     parser.add_argument("--work", help="folder for the runs (default: a temporary one)")
     parser.add_argument("--json")
     args = parser.parse_args()
+    if args.compare_losses:
+        result = {"losses": compare_losses(*args.compare_losses, args.window)}
+        if args.json:
+            Path(args.json).write_text(json.dumps(result, indent=1))
+        return
+    if not args.data:
+        parser.error("--data is needed (unless --compare-losses)")
     if torch.cuda.is_available() and torch.cuda.device_count() < args.gpus:
         sys.exit(f"this machine has {torch.cuda.device_count()} GPU(s); --gpus {args.gpus} needs that many")
     gpus = [torch.cuda.get_device_name(i) for i in range(args.gpus)] if torch.cuda.is_available() else []

@@ -1,11 +1,13 @@
 """The table and bar chart of docs/RESULTS.md, from `rvt2 eval` reports and the oracle benchmark.
 
-    python -m benchmarks.results_table --policy "LABEL=EVAL_DIR[+EVAL_DIR...]" [--policy ...] \
+    python -m benchmarks.results_table --policy "LABEL=EVAL_DIR[+EVAL_DIR...][,EVAL_DIR...]" [--policy ...] \
         (--oracle-bench oracle.json | --oracle EVAL_DIR --expert expert.json) \
         [--previous "LABEL=results.json"] [--chart docs/results.png] [--json benchmarks/results/results.json]
 
 EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluation over all their seeds
-(their episode records are merged and summarised by the same code `rvt2 eval` uses). oracle.json is
+(their episode records are merged and summarised by the same code `rvt2 eval` uses). Several models
+(training seeds) separated by commas are one row entry: their episodes pooled (rate and Wilson interval
+over all of them) and the spread between the models' rates beside it. oracle.json is
 `python -m benchmarks.oracle_bench --json ...` (oracle and expert on the same seeds); the older pair
 --oracle/--expert takes an `rvt2 eval --oracle` folder and `benchmarks.record_bench --json` output.
 --previous adds the policy columns of an earlier results.json for comparison. The last column
@@ -30,19 +32,38 @@ def load_policy(dirs: str) -> dict:
     return build_report(records, {"seed": min(seeds), "episodes_per_task": per_task})
 
 
+def load_models(models: str) -> list[dict]:
+    """One report per model (training seed); a model's eval folders are joined with +."""
+    return [load_policy(dirs) for dirs in models.split(",")]
+
+
 def _rate(successes: int, episodes: int) -> dict:
     return {"successes": successes, "episodes": episodes, "rate": successes / episodes if episodes else 0.0,
             "ci95": list(wilson_interval(successes, episodes))}
 
 
-def collect(policies: dict[str, dict], oracle: dict[str, dict], expert: dict[str, dict], previous: dict) -> dict:
+def _pooled(reports: list[dict], task: str) -> dict:
+    """One task over several models: pooled rate and interval, each model's rate and their spread."""
+    per_model = [r["tasks"][task]["policy"] for r in reports]
+    entry = {**_rate(sum(p["successes"] for p in per_model), sum(p["episodes"] for p in per_model)),
+             "failures": {}, "unreached": sum(p["unreached_keyframes"] for p in per_model),
+             "replans": sum(p["replans"] for p in per_model)}
+    for p in per_model:
+        for reason, n in p["failures"].items():
+            entry["failures"][reason] = entry["failures"].get(reason, 0) + n
+    if len(per_model) > 1:
+        rates = [p["successes"] / p["episodes"] for p in per_model]
+        entry["models"] = rates
+        entry["spread"] = max(rates) - min(rates)
+    return entry
+
+
+def collect(policies: dict[str, list[dict]], oracle: dict[str, dict], expert: dict[str, dict], previous: dict) -> dict:
     rows = []
     for task in sorted(oracle):
         entry = {"task": task, "policies": {}, "oracle": oracle[task], "expert": expert[task]}
-        for label, report in policies.items():
-            p = report["tasks"][task]["policy"]
-            entry["policies"][label] = {**_rate(p["successes"], p["episodes"]), "failures": p["failures"],
-                                        "unreached": p["unreached_keyframes"], "replans": p["replans"]}
+        for label, reports in policies.items():
+            entry["policies"][label] = _pooled(reports, task)
         for label, rows_before in previous.items():
             entry["policies"][label] = rows_before[task]
         rows.append(entry)
@@ -50,7 +71,7 @@ def collect(policies: dict[str, dict], oracle: dict[str, dict], expert: dict[str
     average = {label: sum(r["policies"][label]["rate"] for r in rows) / len(rows) for label in labels}
     average["oracle"] = sum(r["oracle"]["rate"] for r in rows) / len(rows)
     average["expert"] = sum(r["expert"]["rate"] for r in rows) / len(rows)
-    first = next(iter(policies.values()))
+    first = next(iter(policies.values()))[0]
     return {"seeds": f"{first['seed']}-{first['seed'] + first['episodes_per_task'] - 1}", "labels": labels,
             "rows": rows, "average": average}
 
@@ -82,7 +103,8 @@ def load_previous(arg: str) -> tuple[str, dict]:
 def markdown(results: dict) -> str:
     def cell(r):
         lo, hi = r["ci95"]
-        return f"{r['rate']:.0%} ({r['successes']}/{r['episodes']}; {lo:.0%}-{hi:.0%})"
+        spread = f"; models {'/'.join(f'{m:.0%}' for m in r['models'])}" if "models" in r else ""
+        return f"{r['rate']:.0%} ({r['successes']}/{r['episodes']}; {lo:.0%}-{hi:.0%}{spread})"
 
     labels = results["labels"]
     lines = ["| task | " + " | ".join(labels) + " | oracle (same executor) | scripted expert | "
@@ -124,7 +146,7 @@ def chart(results: dict, path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--policy", action="append", required=True, metavar="LABEL=EVAL_DIR[+EVAL_DIR]")
+    parser.add_argument("--policy", action="append", required=True, metavar="LABEL=EVAL_DIR[+EVAL_DIR][,EVAL_DIR]")
     parser.add_argument("--oracle-bench", metavar="ORACLE_JSON")
     parser.add_argument("--oracle", metavar="EVAL_DIR")
     parser.add_argument("--expert")
@@ -132,7 +154,7 @@ def main() -> None:
     parser.add_argument("--chart")
     parser.add_argument("--json")
     args = parser.parse_args()
-    policies = {label: load_policy(dirs) for label, dirs in (p.split("=", 1) for p in args.policy)}
+    policies = {label: load_models(models) for label, models in (p.split("=", 1) for p in args.policy)}
     if args.oracle_bench:
         oracle, expert = from_oracle_bench(args.oracle_bench)
     else:

@@ -81,8 +81,12 @@ while [ $# -gt 0 ]; do
     for task in $TASKS; do
       "${RVT2[@]}" record --task "$task" --episodes "$EPISODES" --workers "$WORKERS" --out "$W/demos" --no-progress 2>&1 | tail -2
     done
-    "${RVT2[@]}" extract-keyframes "$W/demos" | tail -1
     phase record $(( $(clock) - t ))
+    ;&
+  keyframes)
+    t=$(clock)
+    "${RVT2[@]}" extract-keyframes "$W/demos" 2>&1 | tail -1
+    phase keyframes $(( $(clock) - t ))
     ;;
   heldout)  # held-out demos for offline scores: HELDOUT_TASKS x 5 from seed 30000 (training demos use 0 upwards)
     t=$(clock)
@@ -115,7 +119,7 @@ while [ $# -gt 0 ]; do
     name=$1
     shift
     rm -rf "$W/bg_$name" "$W/$name.done"
-    mkdir -p "$W/bg_$name" && tar -cf - --exclude=.gpu --exclude=data . | tar -x -C "$W/bg_$name"
+    mkdir -p "$W/bg_$name" && tar -cf - --exclude=./.gpu --exclude=./data . | tar -x -C "$W/bg_$name"
     command="scripts/gpu_onebox.sh $*"
     if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script (scripts/gpu_results_v2.sh)
     (cd "$W/bg_$name" && setsid nohup bash -c "t=\$(date +%s); bash $command; echo \$? \$(( \$(date +%s) - t )) > $W/$name.done" \

@@ -8,19 +8,22 @@
 # model closed-loop on seeds 10000-10049 and offline on the held-out demos.
 #
 # On a two-GPU workstation with rvt2 and its simulator installed: `bash scripts/gpu_results_v2.sh all`
-# (about 25 minutes on 2 x H200). On the lent machine, one device call per step: `stash` for each
-# .gpu/site.part.* piece but the last (scripts/pack_gpu_wheels.sh), `start` carrying the last piece and .gl,
-# then `collect` until it has everything (each call waits up to 9 minutes).
+# (about 30 minutes on 2 x H200). On the lent machine, one device call per step: `stash` for each
+# .gpu/site.part.* piece but the last (scripts/pack_gpu_wheels.sh), `start` carrying the last piece and .gl
+# (it starts the chain in the background), then `collect` until it has everything (each call waits up to
+# 9 minutes). Measured on 2 x H200 (2026-11-22): training seed 1 354 s, the DDP benchmark 242 s,
+# evaluating 8 x 50 episodes 116 s; recording 200 demos with 28 workers did not end inside one 10-minute
+# call, although all 200 files were written (see docs/BENCHMARKS.md, "Several GPUs").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export WORKERS=${WORKERS:-28}
 onebox=scripts/gpu_onebox.sh
 case ${1:-all} in
   stash) bash $onebox stash ;;
-  start) bash $onebox stash setup record heldout
-         bash "$0" bg ;;
-  bg) bash $onebox bg chain "$0" chain ;;  # the chain below, in the background
-  chain) RUN=seed1 NPROC=2 TRAIN_ARGS="--compile --seed 1" bash $onebox train ddpbench
+  start) bash $onebox stash setup
+         bash $onebox bg chain "$0" chain ;;  # the chain below, in the background (calls end at 10 minutes)
+  chain) bash $onebox record heldout
+         RUN=seed1 NPROC=2 TRAIN_ARGS="--compile --seed 1" bash $onebox train ddpbench
          RUN=demos10 STEPS=550 TRAIN_ARGS="--compile --episodes-per-task 10" CUDA_VISIBLE_DEVICES=0 bash $onebox bg demos10 train
          RUN=front10 STEPS=550 TRAIN_ARGS="--compile --episodes-per-task 10 --cameras front" CUDA_VISIBLE_DEVICES=1 \
            bash $onebox bg front10 train
@@ -29,6 +32,6 @@ case ${1:-all} in
          for run in demos10 front10; do RUN=$run bash $onebox eval offline; done ;;
   collect) WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
            RUNS="seed1 demos10 front10" bash $onebox results ;;
-  all) bash $onebox setup record heldout && bash "$0" chain && RUNS="seed1 demos10 front10" bash $onebox results ;;
+  all) bash $onebox setup && bash "$0" chain && RUNS="seed1 demos10 front10" bash $onebox results ;;
   *) echo "usage: $0 stash|start|chain|collect|all" >&2; exit 2 ;;
 esac

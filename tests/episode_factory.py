@@ -23,7 +23,10 @@ def random_episode(path, seed: int = 0, frames: int = 12, obs_every: int = 5, ca
                           gripper_width=0.04, gripper_command=1.0 if t < frames // 2 else -1.0,
                           action=None if t == frames - 1 else rng.normal(size=8).astype(np.float32),
                           contacts=["peg"] if t > frames // 2 else [], tcp_pose=tcp, sim_state=sim)
-            truth["qpos"].append(qpos); truth["qvel"].append(qvel); truth["tcp"].append(tcp); truth["sim"].append(sim)
+            truth["qpos"].append(qpos)
+            truth["qvel"].append(qvel)
+            truth["tcp"].append(tcp)
+            truth["sim"].append(sim)
             if t % obs_every == 0:
                 n = int(rng.integers(50, 200))
                 cloud = Cloud(xyz=rng.normal(size=(n, 3)).astype(np.float32), rgb=rng.integers(0, 256, (n, 3), dtype=np.uint8))

@@ -159,3 +159,30 @@ def test_metadata_must_match_schema(tmp_path):
         with EpisodeWriter(tmp_path / "bad.mcap", control_hz=20.0) as w:
             w.finish(meta)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_folder_of_episodes_leaves_out_an_interrupted_writers_hidden_file(tmp_path, cli):
+    """A killed recorder leaves its unfinished episode under a hidden temporary name: reading the folder
+    (extract-keyframes, train, pack-samples) uses the finished episodes and never that one."""
+    from rvt2cli.atomic import temp_path_for
+    from rvt2cli.data.paths import episode_paths
+
+    done = tmp_path / "stack_cube_0000.mcap"
+    random_episode(done)
+    unfinished = temp_path_for(tmp_path / "stack_cube_0001.mcap")
+    unfinished.write_bytes(done.read_bytes()[:1000])  # cut off mid-write
+    assert episode_paths([str(tmp_path)]) == [done]
+    r = cli("extract-keyframes", tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert unfinished.exists()  # not ours to delete
+
+
+def test_episodes_record_rvt2s_version_also_from_a_source_tree():
+    """The versions an episode stores come from rvt2 itself and the installed libraries; a library
+    without metadata (or rvt2 run from its source tree) is no reason to fail a recording."""
+    from rvt2cli import __version__
+    from rvt2cli.data.provenance import software_versions
+
+    versions = software_versions("numpy", "no-such-distribution-rvt2-test")
+    assert versions["rvt2"] == __version__ and versions["numpy"] == np.__version__
+    assert versions["no-such-distribution-rvt2-test"] == "unknown"

@@ -151,6 +151,11 @@ def test_ddp_run_killed_and_resumed_continues_exactly_on_both_ranks(tiny_dataset
     rows = lambda d: [(r["step"], r["loss"]) for r in csv.DictReader(open(d / "train.csv"))]  # noqa: E731
     assert rows(run) == rows(tmp_path / "a")
 
+    from benchmarks.ddp_bench import compare_losses  # the loss-curve comparison of docs/BENCHMARKS.md
+
+    same = compare_losses(tmp_path / "a", run, window=4)
+    assert same["steps_compared"] == 16 and same["max_gap"] == 0.0 and same["row_noise"]["one_gpu"] > 0
+
 
 def test_resume_keeps_the_runs_options_and_refuses_a_changed_one(tiny_checkpoint, cli):
     run_dir, _ = tiny_checkpoint

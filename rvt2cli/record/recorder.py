@@ -11,7 +11,6 @@ import os
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ import numpy as np
 from rvt2cli.atomic import ensure_folder
 from rvt2cli.data import EpisodeMeta, EpisodeWriter
 from rvt2cli.data.fusion import fuse
+from rvt2cli.data.provenance import software_versions
 from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.record.expert import ExpertRun, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
@@ -55,9 +55,6 @@ def episode_path(out_dir: Path, task: Task, seed: int) -> Path:
     return out_dir / f"{task.name}_{seed:04d}.mcap"
 
 
-def software_versions() -> dict[str, str]:
-    return {name: version(name) for name in ("rvt2", "mani-skill", "sapien", "mplib", "numpy")}
-
 
 def observation_frames(num_frames: int, gripper_open, arm_velocities, obs_every: int) -> list[int]:
     """The frames whose images an episode stores: frame 0, every `obs_every`-th frame, every keyframe of
@@ -90,7 +87,8 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
         meta = EpisodeMeta(
             task=task.name, env_id=task.env_id, seed=run.seed, success=run.success, expert=task.expert,
             num_frames=len(run.frames), control_hz=control_hz, scene_bounds=list(task.scene_bounds), cameras=cameras,
-            instruction=instruction, versions=software_versions(), obs_frames=writer.obs_frames,
+            instruction=instruction, obs_frames=writer.obs_frames,
+            versions=software_versions("mani-skill", "sapien", "mplib", "numpy"),
             voxel_size=options.voxel_size, extra={"image_size": int(options.image_size or task.image_size), "status": run.status,
                                                   "robot": robot.to_json()},
         )

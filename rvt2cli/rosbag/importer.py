@@ -14,13 +14,13 @@ several leaves nothing behind.
 
 import re
 from dataclasses import dataclass, field
-from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 
 from rvt2cli.atomic import check_folder_can_be_made, ensure_folder
 from rvt2cli.data import CameraFrame, EpisodeMeta, EpisodeWriter
+from rvt2cli.data.provenance import software_versions
 from rvt2cli.errors import UserError
 from rvt2cli.record.recorder import observation_frames
 from rvt2cli.robot import PANDA, RobotFacts
@@ -373,9 +373,6 @@ def read_observations(plan: ImportPlan) -> dict[int, dict[str, CameraFrame]]:
     return observations
 
 
-def software_versions() -> dict[str, str]:
-    return {name: version(name) for name in ("rvt2", "mcap", "mcap-ros2-support", "numpy")}
-
 
 def write_imported_episode(plan: ImportPlan, path: Path, index: int, options: ImportOptions) -> Path:
     observations = read_observations(plan)
@@ -394,8 +391,9 @@ def write_imported_episode(plan: ImportPlan, path: Path, index: int, options: Im
         meta = EpisodeMeta(
             task=options.task, env_id=ENV_ID, seed=index, success=True, expert=f"rosbag:{plan.bag.name}",
             num_frames=len(plan.stamps), control_hz=plan.control_hz, scene_bounds=[float(v) for v in options.scene_bounds],
-            cameras=[c.topics.name for c in plan.cameras], instruction=options.instruction, versions=software_versions(),
-            obs_frames=writer.obs_frames, voxel_size=options.voxel_size,
+            cameras=[c.topics.name for c in plan.cameras], instruction=options.instruction,
+            versions=software_versions("mcap", "mcap-ros2-support", "numpy"), obs_frames=writer.obs_frames,
+            voxel_size=options.voxel_size,
             extra={"source": "rosbag", "bag": str(plan.bag.path), "image_size": int(width), "image_height": int(height),
                    "robot": robot.to_json(), "base_frame": options.base_frame, "joint_states": options.joint_states,
                    "cameras": {c.topics.name: {"colour": c.topics.colour, "depth": c.topics.depth, "camera_info": c.topics.info}
