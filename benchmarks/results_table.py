@@ -2,7 +2,7 @@
 
     python -m benchmarks.results_table --policy "LABEL=EVAL_DIR[+EVAL_DIR...][,EVAL_DIR...]" [--policy ...] \
         (--oracle-bench oracle.json | --oracle EVAL_DIR --expert expert.json) \
-        [--previous "LABEL=results.json"] [--chart docs/results.png] [--json benchmarks/results/results.json]
+        [--previous "LABEL=results.json[#COLUMN]"] [--chart docs/results.png] [--json benchmarks/results/results.json]
 
 EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluation over all their seeds
 (their episode records are merged and summarised by the same code `rvt2 eval` uses). Several models
@@ -10,7 +10,7 @@ EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluatio
 over all of them) and the spread between the models' rates beside it. oracle.json is
 `python -m benchmarks.oracle_bench --json ...` (oracle and expert on the same seeds); the older pair
 --oracle/--expert takes an `rvt2 eval --oracle` folder and `benchmarks.record_bench --json` output.
---previous adds the policy columns of an earlier results.json for comparison. The last column
+--previous adds a policy column of an earlier results.json (its first, or the one named after #) for comparison. The last column
 compares the first --policy with the oracle.
 """
 
@@ -94,10 +94,12 @@ def from_eval_and_record(oracle_dir: str, expert_path: str) -> tuple[dict, dict]
 
 
 def load_previous(arg: str) -> tuple[str, dict]:
+    """LABEL=RESULTS_JSON[#COLUMN]: a policy column of an earlier results.json (default: its first)."""
     label, path = arg.split("=", 1)
+    path, _, column = path.partition("#")
     results = json.loads(Path(path).read_text())
-    first = results["labels"][0]
-    return label, {r["task"]: r["policies"][first] for r in results["rows"]}
+    column = column or results["labels"][0]
+    return label, {r["task"]: r["policies"][column] for r in results["rows"]}
 
 
 def markdown(results: dict) -> str:
@@ -138,7 +140,7 @@ def chart(results: dict, path: Path) -> None:
     ax.set_xticks(x, tasks, rotation=15)
     ax.set_ylabel("success (%)")
     ax.set_ylim(0, 115)
-    ax.set_title(f"Closed-loop success on unseen seeds ({results['seeds']})")
+    ax.set_title(f"Closed-loop success on unseen seeds (from {results['seeds'].split('-')[0]}; episodes per task in docs/RESULTS.md)")
     ax.legend(ncol=len(series), fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -150,7 +152,7 @@ def main() -> None:
     parser.add_argument("--oracle-bench", metavar="ORACLE_JSON")
     parser.add_argument("--oracle", metavar="EVAL_DIR")
     parser.add_argument("--expert")
-    parser.add_argument("--previous", action="append", default=[], metavar="LABEL=RESULTS_JSON")
+    parser.add_argument("--previous", action="append", default=[], metavar="LABEL=RESULTS_JSON[#COLUMN]")
     parser.add_argument("--chart")
     parser.add_argument("--json")
     args = parser.parse_args()

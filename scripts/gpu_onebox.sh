@@ -11,6 +11,8 @@
 #   bash scripts/gpu_onebox.sh stash setup record     # unpack, check the GPU renders, record (heldout: 30000+)
 #   bash scripts/gpu_onebox.sh bg main train ddpbench # in the background: train RUN, then the DDP benchmark
 #   bash scripts/gpu_onebox.sh wait main eval offline # wait for it, evaluate on the GPU, score held-out demos
+#   bash scripts/gpu_onebox.sh loopbench              # the training loop against its step (benchmarks/loop_bench.py)
+#   bash scripts/gpu_onebox.sh eval repro             # evaluate RUN, then part of it again: same episodes?
 #   bash scripts/gpu_onebox.sh results                # phase times, logs, reports of RUNS -> $OUT/results.tgz
 #   bash scripts/gpu_onebox.sh weights FIRST COUNT    # float16 weight pieces FIRST.. (and meta.tar with 0) to $OUT
 # Here:    tar -xf meta.tar in the pieces' folder; python scripts/gpu_checkpoint.py restore PIECES_DIR runs/NAME
@@ -37,6 +39,7 @@ OUT=${OUT:-/tmp/rvt2-out}
 mkdir -p "$W" "$OUT"
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 RVT2_EMBEDDINGS=$SITE/embeddings.safetensors
 export LD_LIBRARY_PATH=${LD_LIBRARY_PATH:-}:/usr/local/nvidia/lib64:/usr/local/nvidia/lib
+export PYTORCH_CUDA_ALLOC_CONF=${PYTORCH_CUDA_ALLOC_CONF:-expandable_segments:True}  # two trainings share one GPU
 export RVT2_VULKAN=${RVT2_VULKAN:-nvidia}   # the point of this machine: say so at once if its GPU cannot render
 RVT2=(python3 -m rvt2cli)
 # run from this source tree: the package finds tasks/ and schemas/ where an install would put them
@@ -90,8 +93,8 @@ while [ $# -gt 0 ]; do
     ;;
   heldout)  # held-out demos for offline scores: HELDOUT_TASKS x 5 from seed 30000 (training demos use 0 upwards)
     t=$(clock)
-    for task in ${HELDOUT_TASKS:-insert_peg plug_charger}; do
-      "${RVT2[@]}" record --task "$task" --episodes 5 --seed 30000 --workers "$WORKERS" --out "$W/heldout" --no-progress 2>&1 | tail -1
+    for task in ${HELDOUT_TASKS:-$TASKS}; do
+      "${RVT2[@]}" record --task "$task" --episodes "${HELDOUT_EPISODES:-5}" --seed 30000 --workers "$WORKERS" --out "$W/heldout" --no-progress 2>&1 | tail -1
     done
     "${RVT2[@]}" extract-keyframes "$W/heldout" | tail -1
     phase heldout $(( $(clock) - t ))
@@ -107,6 +110,22 @@ while [ $# -gt 0 ]; do
       --no-progress ${TRAIN_ARGS---compile} 2>&1 | tee "$W/train_$RUN.log" | grep -v "^step " | tail -4
     phase "train_$RUN" $(( $(clock) - t ))
     tail -1 "$W/runs/$RUN/train.csv"
+    ;;
+  loopbench)  # the training loop against its step on the recorded demos (benchmarks/loop_bench.py)
+    t=$(clock)
+    # every 4th demo file: the loop's speed does not depend on how many samples it draws from
+    python3 -m benchmarks.loop_bench --data $(ls "$W"/demos/*.mcap | awk 'NR % 4 == 1') --config "$CONFIG" --batch-size "$BATCH" ${LOOPBENCH_ARGS---compile} --steps 20 --profile "$W/profile" \
+      --json "$W/loop_bench.json" > "$W/loop_bench.log" 2>&1 || echo "loop_bench failed (the chain goes on): see loop_bench.log"
+    grep -v "^data:" "$W/loop_bench.log" | tail -24
+    phase loopbench $(( $(clock) - t ))
+    ;;
+  repro)  # RUN's evaluation again on REPRO_TASKS x REPRO_EPISODES: the same episodes, record for record?
+    t=$(clock)
+    tasks=${REPRO_TASKS:-insert_peg,plug_charger,lift_peg_upright}
+    "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --tasks "$tasks" --episodes "${REPRO_EPISODES:-10}" --seed 10000 \
+      --workers "$WORKERS" --device "$DEVICE" --out "$W/eval_${RUN}_repro" --no-progress 2>&1 | tail -4
+    python3 scripts/compare_evals.py "$W/eval_$RUN" "$W/eval_${RUN}_repro" | tee "$W/eval_${RUN}_repro/compare.txt"
+    phase "repro_$RUN" $(( $(clock) - t ))
     ;;
   ddpbench)  # the training loop on 1 GPU against RUN's NPROC GPUs at the same per-GPU batch; kill-and-resume
     t=$(clock)
@@ -139,8 +158,10 @@ while [ $# -gt 0 ]; do
     ;;
   eval)
     t=$(clock)
+    resume=()
+    if [ -f "$W/eval_$RUN/episodes.jsonl" ]; then resume=(--resume); fi  # an interrupted evaluation: the rest of it
     "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --episodes "$EVAL_EPISODES" --seed 10000 --workers "$WORKERS" \
-      --device "$DEVICE" --out "$W/eval_$RUN" --no-progress 2>&1 | tail -12
+      --device "$DEVICE" --out "$W/eval_$RUN" --no-progress "${resume[@]}" 2>&1 | tail -12
     phase "eval_$RUN" $(( $(clock) - t ))
     ;;
   offline)  # millimetres on the held-out demos in $W/heldout (carried from $HELDOUT by stash, or the heldout phase)
@@ -151,10 +172,12 @@ while [ $# -gt 0 ]; do
     ;;
   results)  # every small result in one file (a call returns at most 8 files)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
-    files=(phases.tsv ddp_bench.json)
+    files=(phases.tsv ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt)
+    cp "$OUT/gpu.txt" "$W/" 2>/dev/null || true
     for run in $RUNS; do
       files+=("train_$run.log" "runs/$run/train.csv" "runs/$run/validation.csv" "runs/$run/run.json" "eval_$run/eval.json"
-              "eval_$run/eval.md" "eval_$run/episodes.jsonl" "offline_$run/offline.json" "offline_$run/offline.md")
+              "eval_$run/eval.md" "eval_$run/episodes.jsonl" "offline_$run/offline.json" "offline_$run/offline.md"
+              "eval_${run}_repro/compare.txt" "eval_${run}_repro/episodes.jsonl")
     done
     (cd "$W" && { ls -d "${files[@]}" 2>/dev/null || true; } | tar -czf "$OUT/results.tgz" -T -)
     tar -tzf "$OUT/results.tgz"
@@ -175,7 +198,7 @@ while [ $# -gt 0 ]; do
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|bench|record|heldout|train|ddpbench|eval|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
+    echo "usage: $0 stash|setup|bench|record|heldout|loopbench|train|ddpbench|eval|repro|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
     exit 2
     ;;
   esac

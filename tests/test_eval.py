@@ -53,6 +53,12 @@ def test_oracle_report_carries_pose_errors_at_rest(tmp_path):
     steps = result.report["episodes"][0]["steps"]
     assert all(s["position_error_mm"] is not None for s in steps if s["reached"])
     assert "error at rest" in (tmp_path / "eval.md").read_text()
+    free, contact = summary["pose_error_free"], summary["pose_error_contact"]
+    assert free["keyframes"] + contact["keyframes"] == pose["keyframes"] and free["keyframes"] >= 3
+    assert free["position_mm"]["p95"] < 0.5 and free["rotation_deg"]["p95"] < 0.3  # free space: the goal
+    assert "keyframes in free space" in (tmp_path / "eval.md").read_text()
+    episode = result.report["episodes"][0]
+    assert episode["step_budget"] == 2 * episode["task_max_steps"] == 800  # the default --step-budget-scale
 
 
 def test_untrained_task_is_warned_in_one_line_and_noted(tiny_checkpoint, tmp_path, cli):

@@ -1,12 +1,13 @@
 """The executor on the real simulator: it lands on its targets within a fraction of a millimetre, with
-the gripper empty and while holding an object, and an unreachable pose moves nothing."""
+the gripper empty and while holding an object, an unreachable pose moves nothing, and a blocked pose
+costs a few control steps unless the keyframe expects contact."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from rvt2cli.data.keyframes import Keyframe
-from rvt2cli.eval.executor import Executor, pose_error
+from rvt2cli.eval.executor import SERVO_STEPS, STALL_STEPS, Executor, pose_error
 from rvt2cli.eval.sources import OracleSource
 from rvt2cli.record.scene import make_env
 from rvt2cli.runtime import seed_everything
@@ -77,3 +78,20 @@ def test_an_unreachable_pose_fails_and_leaves_the_arm_still(env):
     assert not reach.reached and reach.position_error_mm is None and reach.planner == "none"
     assert executor.steps == 0 and np.array_equal(executor.qpos(), before)
     assert executor.gripper > 0  # the gripper did not close either
+
+
+def test_a_blocked_pose_stops_the_servo_unless_the_keyframe_expects_contact(env):
+    """A pose 3 cm under the table top: avoiding collisions, the servo gives up once the TCP comes no
+    closer (a policy's pose against an obstacle must not eat the episode's control steps); ignoring
+    them (an insertion, a push), it keeps pushing for all its steps."""
+    spent = {}
+    for ignore in (False, True):
+        seed_everything(5)
+        env.reset(seed=5)
+        executor = Executor(env, step_budget=2000, speed=get_task("pick_cube").planner_speed)
+        start = executor.tcp_pose()
+        reach = executor.execute(Keyframe.from_pose([start[0], start[1], -0.03, *start[3:]], gripper_open=True,
+                                                    ignore_collisions=ignore))
+        assert reach.reached and reach.position_error_mm > 10  # the table stopped it
+        spent[ignore] = reach.servo_steps
+    assert spent[False] <= STALL_STEPS + 2 and spent[True] == SERVO_STEPS, spent

@@ -164,3 +164,54 @@ def test_resume_keeps_the_runs_options_and_refuses_a_changed_one(tiny_checkpoint
     r = cli("train", "--out", run_dir, "--resume", "--no-progress")  # the stored options: already at its last step
     assert r.returncode == 0, r.stderr[-2000:]
     assert "trained 300 steps" in r.stdout
+
+
+@pytest.mark.slow
+def test_compiled_training_compiles_its_graphs_once(tiny_dataset, tmp_path):
+    """`rvt2 train --compile` compiles the network, once, at the training batch: counting FLOPs on one
+    sample and validating at other batch sizes run eagerly. (Counting FLOPs in torch's FlopCounterMode on
+    the compiled network made torch skip compiling it for good: rvt2 train --compile trained eagerly,
+    512 samples/s instead of 723 on an H200.)"""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    from rvt2cli.model.config import get_config
+    from rvt2cli.model.policy import RVT2Policy
+    from rvt2cli.train.batches import BatchStream
+    from rvt2cli.train.trainer import load_data
+
+    torch._dynamo.reset()
+    counters.clear()
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        train(TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "run"), steps=2, save_every=2, compile=True,
+                           **TINY_TRAIN), say=lambda *_: None)
+        assert counters["frames"]["ok"] >= 2, dict(counters["frames"])  # both stages were compiled, not skipped
+        torch._dynamo.reset()
+        cfg = get_config("small")
+        opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "x"), **TINY_TRAIN)
+        packed = load_data(opts, cfg, torch.device("cpu"), False, None, lambda *_: None).packed
+        policy = RVT2Policy(cfg, render_backend="torch")
+        policy.compile_network()
+        batch = next(BatchStream(packed, cfg, torch.Generator().manual_seed(0), 4))
+        for _ in range(2):
+            policy(batch.obs, batch.position, batch.rot_bins, batch.stage2_center)
+            with policy.eager():  # validation-sized batches: no compilation at all
+                one = next(BatchStream(packed, cfg, torch.Generator().manual_seed(1), 1))
+                policy(one.obs, one.position, one.rot_bins, one.stage2_center)
+                policy.predict(one.obs)
+
+
+def test_loop_bench_times_the_command_beside_its_step(tiny_dataset, tmp_path):
+    """benchmarks/loop_bench.py --quick: rvt2 train's own rate next to the step on synthetic and real batches."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "loop.json"
+    root = Path(__file__).parent.parent
+    r = subprocess.run([sys.executable, "-m", "benchmarks.loop_bench", "--data", str(tiny_dataset), "--quick", "--json", str(out)],
+                       cwd=root, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    variants = json.loads(out.read_text())["variants"]
+    assert {"rvt2 train", "synthetic", "real", "loop", "batch_only"} <= set(variants)
+    assert all(v["samples_per_s"] > 0 for k, v in variants.items() if k != "batch_only")

@@ -54,6 +54,8 @@ OUT_OF_RANGE = [
     ["eval", "--checkpoint", "c", "--seed", "-1"],
     ["eval", "--checkpoint", "c", "--keyframe-budget", "0"],
     ["eval", "--checkpoint", "c", "--max-replans", "-1"],
+    ["eval", "--checkpoint", "c", "--step-budget-scale", "0"],
+    ["eval", "--checkpoint", "c", "--step-budget-scale", "inf"],
     ["eval", "--checkpoint", "c", "--offline", "d", "--batch-size", "0"],
     ["export", "--checkpoint", "c", "--max-points", "0"],
     ["export", "--checkpoint", "c", "--max-points", "many"],

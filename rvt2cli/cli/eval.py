@@ -1,7 +1,7 @@
 """`rvt2 eval`: closed-loop success in the simulator, with the executor's ceiling (--oracle); or, with
 --offline, the policy's precision on recorded demos without a simulator."""
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, SEED, integer, names
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, SEED, integer, names, number
 
 
 def register(subparsers) -> None:
@@ -28,6 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("--keyframe-budget", type=COUNT, default=E.keyframe_budget, help=f"keyframes per episode (default {E.keyframe_budget})")
     p.add_argument("--max-replans", type=NON_NEGATIVE, default=E.max_replans,
                    help=f"re-predictions after an unreachable keyframe, in a row (default {E.max_replans})")
+    p.add_argument("--step-budget-scale", type=number(0.0, 100.0, exclusive_minimum=True), default=E.step_budget_scale,
+                   help=f"control steps per episode: this x the task's max_steps (default {E.step_budget_scale:g}; the "
+                        "keyframe budget is the measure, this only ends episodes that keep the arm busy)")
     p.add_argument("--resume", action="store_true", help="continue the evaluation in --out (after a crash or Ctrl-C)")
     p.add_argument("--batch-size", type=COUNT, default=8, help="--offline: observations per forward pass (default 8)")
     p.add_argument("--out", help="output folder (default: CHECKPOINT/eval, or CHECKPOINT/offline)")
@@ -49,7 +52,8 @@ def run(args) -> int:
     opts = EvalOptions(checkpoint=args.checkpoint, tasks=args.tasks or (), episodes=args.episodes, seed=args.seed,
                        workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
-                       max_replans=args.max_replans, out=args.out, device=args.device, resume=args.resume)
+                       max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
+                       device=args.device, resume=args.resume)
     bars = []
 
     def on_start(total):

@@ -10,7 +10,10 @@ whether the motion into it may touch the scene. The executor
    as much as a peg's clearance. The correction is blended in along the path, so the motion stays smooth;
 3. servos in joint space until the TCP is at rest within `Tolerance` of the target: it holds the IK
    solution and, where the arm rests elsewhere (an object in the hand, a contact), shifts the joint
-   command by the remaining joint error (integral action, bounded), for at most `SERVO_STEPS` steps.
+   command by the remaining joint error (integral action, bounded), for at most `SERVO_STEPS` steps,
+   and, for a keyframe that avoids collisions, stops early once the error has not shrunk for
+   `STALL_STEPS` steps (a pose blocked by an unexpected contact, whether the arm rests against it or
+   trembles there, comes no closer).
    A real Franka under Cartesian impedance control lands well under a millimetre; so does this;
 4. opens or closes the gripper.
 Every keyframe reports where the TCP came to rest (`Reach`). A pose the planners cannot reach is a
@@ -35,6 +38,10 @@ from rvt2cli.robot import RobotFacts, planner_description
 GRIPPER_STEPS = 6          # control steps to open or close, as the experts do
 SETTLE_STEPS = 20          # at most this many steps holding the goal until the arm is at rest (no servo needed)
 SERVO_STEPS = 40           # at most this many further steps of servoing onto the target
+# A collision-avoiding keyframe whose error has not shrunk by 5% in this many servo steps is blocked by
+# something its plan did not expect: stop pushing. A collision-ignoring one (an insertion, a push) keeps
+# pushing for all SERVO_STEPS: a peg that sticks at a hole's rim often slides in a few steps later.
+STALL_STEPS = 8
 MAX_SERVO_OFFSET = 0.05    # rad: the furthest the servo moves a joint command away from the IK solution
 # mplib integrates the screw motion open-loop in joint steps of this size; its default (0.1 rad) ends
 # ~1 cm off the goal, 0.01 rad within a few mm (the IK correction removes the rest).
@@ -186,22 +193,23 @@ class Executor:
 
     def _servo(self, target: Keyframe, command: np.ndarray) -> tuple[np.ndarray, int]:
         """Hold `command` until the arm rests; then, while the TCP rests off the target, shift the command
-        by the remaining joint error. Returns (the final command, servo steps spent)."""
+        by the remaining joint error, until the TCP is within tolerance (or, avoiding collisions, stops
+        coming closer).
+        Returns (the final command, servo steps spent)."""
         for _ in range(SETTLE_STEPS):
             if self._at_rest():
                 break
             self._step(command)
         goal = command.copy()
-        servo_steps, best, stalled = 0, np.inf, 0
-        while servo_steps < SERVO_STEPS and stalled < 3:
+        servo_steps, best, since_best = 0, np.inf, 0
+        patience = SERVO_STEPS if target.ignore_collisions else STALL_STEPS
+        while servo_steps < SERVO_STEPS and since_best < patience:
             position, rotation = pose_error(self.tcp_pose(), target)
             off = max(position / self.tolerance.position_m, rotation / self.tolerance.rotation_deg)  # 1 = at tolerance
             if off <= 1.0:
                 break
+            best, since_best = (off, 0) if off < 0.95 * best else (best, since_best + 1)
             if self._at_rest():
-                # a pose blocked by a contact does not come closer: stop pushing after three tries
-                stalled = stalled + 1 if off > 0.95 * best else 0
-                best = min(best, off)
                 offset = command - goal + (goal - self.qpos()[self.arm])
                 command = goal + np.clip(offset, -MAX_SERVO_OFFSET, MAX_SERVO_OFFSET)
             self._step(command)

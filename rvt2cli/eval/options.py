@@ -3,6 +3,12 @@
 from dataclasses import dataclass
 
 MAX_REPLANS = 3  # re-predictions after an unreachable keyframe, in a row, before an episode gives up
+# An episode ends after `keyframe_budget` keyframes (RLBench's 25, the paper's measure) or after this many
+# times its task's `max_steps` control steps: a safety net for a policy that keeps the arm busy, sized so
+# that it does not cut short a policy that needs the keyframes (the executor servos up to 60 steps at
+# each; a task's max_steps is about 2.5x its expert's episode). The report also counts the successes
+# within the task's own max_steps.
+STEP_BUDGET_SCALE = 2.0
 
 
 @dataclass(frozen=True)
@@ -19,6 +25,7 @@ class EvalOptions:
     save_rollouts: bool = False
     keyframe_budget: int = 25
     max_replans: int = MAX_REPLANS    # re-predictions after an unreachable keyframe, in a row
+    step_budget_scale: float = STEP_BUDGET_SCALE  # control steps per episode: this x the task's max_steps
     out: str | None = None
     device: str = "cpu"
     resume: bool = False              # continue the evaluation in `out` (its journal) instead of refusing it
@@ -27,4 +34,5 @@ class EvalOptions:
         """The options that decide which episodes run and how: a resumed evaluation must keep them."""
         return {"checkpoint": checkpoint_path, "tasks": list(self.tasks), "episodes": self.episodes, "seed": self.seed,
                 "oracle": self.oracle, "demos": list(self.demos), "instruction": self.instruction,
-                "keyframe_budget": self.keyframe_budget, "max_replans": self.max_replans}
+                "keyframe_budget": self.keyframe_budget, "max_replans": self.max_replans,
+                "step_budget_scale": self.step_budget_scale}

@@ -32,6 +32,7 @@ def episode_record(source: str, outcome: Outcome) -> dict:
     """One finished episode as JSON: its outcome and every keyframe's reach."""
     return {"source": source, "task": outcome.task, "seed": outcome.seed, "success": outcome.success,
             "failure": outcome.failure, "keyframes": outcome.keyframes, "control_steps": outcome.control_steps,
+            "step_budget": outcome.step_budget, "task_max_steps": outcome.task_steps,
             "collision_fallbacks": outcome.collision_fallbacks, "unreached_keyframes": sum(not s.reached for s in outcome.steps),
             "replans": outcome.replans, "instruction": outcome.instruction, "error": outcome.error,
             "steps": [{"frame": s.frame, "reached": s.reach.reached, "retry": s.retry, "planner": s.reach.planner,
@@ -48,21 +49,34 @@ def _percentiles(values: list[float]) -> dict:
     return {"median": float(np.median(a)), "p95": float(np.percentile(a, 95)), "max": float(a.max())}
 
 
+def pose_errors(steps: list[dict]) -> dict:
+    """Median, p95 and max of the errors at rest of these executed keyframes (the reached ones)."""
+    reached = [s for s in steps if s["reached"]]
+    return {"keyframes": len(reached),
+            "position_mm": _percentiles([s["position_error_mm"] for s in reached]),
+            "rotation_deg": _percentiles([s["rotation_error_deg"] for s in reached])}
+
+
 def summarize(records: list[dict]) -> dict:
     n = len(records)
     wins = sum(r["success"] for r in records)
     lo, hi = wilson_interval(wins, n)
-    reached = [s for r in records for s in r.get("steps", []) if s["reached"]]
+    steps = [s for r in records for s in r.get("steps", [])]
     return {
         "episodes": n, "successes": wins, "success_rate": wins / n if n else 0.0, "ci95": [lo, hi],
         "mean_keyframes": sum(r["keyframes"] for r in records) / n if n else 0.0,
+        # the successes a budget of the task's own max_steps would have kept (the same episode up to there)
+        "successes_within_task_steps": sum(r["success"] and r["control_steps"] <= r.get("task_max_steps", math.inf)
+                                           for r in records),
         "failures": {kind: sum(r["failure"] == kind for r in records) for kind in FAILURE_KINDS},
         "unreached_keyframes": sum(r["unreached_keyframes"] for r in records),
         "replans": sum(r.get("replans", 0) for r in records),
         "collision_fallbacks": sum(r["collision_fallbacks"] for r in records),
-        "pose_error": {"keyframes": len(reached),
-                       "position_mm": _percentiles([s["position_error_mm"] for s in reached]),
-                       "rotation_deg": _percentiles([s["rotation_error_deg"] for s in reached])},
+        "pose_error": pose_errors(steps),
+        # keyframes that avoid collisions end in free space, where the executor must land; those that
+        # ignore them push into the scene (insertions, pushes) and rest where a contact stops them
+        "pose_error_free": pose_errors([s for s in steps if not s["ignore_collisions"]]),
+        "pose_error_contact": pose_errors([s for s in steps if s["ignore_collisions"]]),
     }
 
 
@@ -78,7 +92,8 @@ def build_report(records: list[dict], meta: dict) -> dict:
     if len(tasks) > 1:
         report["average"] = {s: sum(report["tasks"][t][s]["success_rate"] for t in tasks if s in report["tasks"][t]) / len(tasks)
                              for s in sources}
-    report["pose_error"] = {s: summarize([r for r in records if r["source"] == s])["pose_error"] for s in sources}
+    for key in ("pose_error", "pose_error_free", "pose_error_contact"):
+        report[key] = {s: summarize([r for r in records if r["source"] == s])[key] for s in sources}
     return report
 
 
@@ -92,7 +107,8 @@ def markdown(report: dict) -> str:
             + " | policy failures | " + " | ".join(f"{s} error at rest, mm (median / p95) | {s} deg (median / p95)" for s in sources)
             + " | policy unreached / replans |")
     lines = [f"# Evaluation: {report.get('checkpoint') or 'oracle only'}", "",
-             f"Seeds from {report['seed']}, {report['episodes_per_task']} episodes per task, keyframe budget {report['keyframe_budget']}."]
+             f"Seeds from {report['seed']}, {report['episodes_per_task']} episodes per task, keyframe budget "
+             f"{report['keyframe_budget']}, control steps up to {report.get('step_budget_scale', 1):g} x each task's max_steps."]
     if report.get("untrained_tasks"):
         lines += ["", f"Not in the checkpoint's training set (a generalisation test): {', '.join(report['untrained_tasks'])}."]
     lines += ["", head, "|" + "---|" * (4 * len(sources) + 3)]
@@ -112,8 +128,19 @@ def markdown(report: dict) -> str:
         lines.append(f"| {task} | " + " | ".join(cells) + f" | {fails} | " + " | ".join(errors) + f" | {unreached} |")
     if "average" in report:
         lines.append("| **average** | " + " | ".join(f"{report['average'].get(s, 0):.0%} | " for s in sources) + " |")
+    if report.get("step_budget_scale", 1) != 1:
+        within = "; ".join(f"{task} " + ", ".join(f"{s} {r['successes_within_task_steps']}/{r['episodes']}"
+                                                   for s, r in per.items() if "successes_within_task_steps" in r)
+                           for task, per in report["tasks"].items())
+        lines += ["", f"Successes within each task's own max_steps (a budget of 1 x): {within}."]
     lines += ["", "Error at rest: distance between the TCP, once the arm has come to rest, and the keyframe's pose, "
-              "over every keyframe the executor reached."]
+              "over every keyframe the executor reached. By kind of keyframe, mm (median / p95) and deg (median / p95):", "",
+              "| source | keyframes in free space (avoiding collisions) | mm | deg | keyframes into contact (ignoring collisions) | mm | deg |",
+              "|---|---|---|---|---|---|---|"]
+    for s in sources:
+        free, contact = report["pose_error_free"][s], report["pose_error_contact"][s]
+        lines.append(f"| {s} | {free['keyframes']} | {_mm(free['position_mm'])} | {_mm(free['rotation_deg'])} | "
+                     f"{contact['keyframes']} | {_mm(contact['position_mm'])} | {_mm(contact['rotation_deg'])} |")
     return "\n".join(lines) + "\n"
 
 

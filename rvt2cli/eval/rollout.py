@@ -49,6 +49,8 @@ class Outcome:
     failure: str | None     # one of FAILURE_KINDS, None on success
     steps: list[Step] = field(default_factory=list)
     control_steps: int = 0
+    step_budget: int = 0    # the episode's control-step budget
+    task_steps: int = 0     # the task's own max_steps (the budget at --step-budget-scale 1)
     control_hz: float = 20.0
     instruction: str = ""
     error: str | None = None
@@ -93,6 +95,7 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
     env.reset(seed=seed)
     executor = Executor(env, step_budget or task.max_steps, task.planner_speed, task.gripper_close)
     outcome = Outcome(task=task.name, seed=seed, success=False, failure=None, instruction=instruction,
+                      step_budget=executor.step_budget, task_steps=task.max_steps,
                       control_hz=float(env.unwrapped.control_freq))
     if video_every:
         def grab():

@@ -74,6 +74,7 @@ class _Worker:
             source = self.oracles.setdefault(task.name, OracleSource(env, self.demos))
         try:
             return run_episode(env, task, job.seed, source, instruction, self.opts.keyframe_budget,
+                               step_budget=round(task.max_steps * self.opts.step_budget_scale),
                                video_every=2 if self.opts.video else 0, max_replans=self.opts.max_replans)
         except UserError:
             raise
@@ -170,6 +171,7 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     def report() -> dict:
         meta = {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
                 "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
+                "step_budget_scale": opts.step_budget_scale,
                 "untrained_tasks": untrained, "seconds": time.perf_counter() - start}
         result = build_report(journal.records, meta)
         write_report(result, out_dir)

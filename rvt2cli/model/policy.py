@@ -116,10 +116,22 @@ class RVT2Policy(nn.Module):
 
     def compile_network(self) -> None:
         """torch.compile the transformer stages and the action head in place (the renderer stays
-        eager: warp kernels are opaque to the compiler). Weights and their names are unchanged."""
+        eager: warp kernels are opaque to the compiler). Weights and their names are unchanged.
+
+        The graphs are specialised to the shapes of their first call (a training batch never changes
+        size). Calls at other sizes (validation) and calls under a torch dispatch mode (the FLOP counter)
+        belong inside `eager()`: the first would compile another graph for each size, and a first call
+        under FlopCounterMode makes torch skip compiling these modules for good (until this was found,
+        `rvt2 train --compile` trained eagerly: 512 samples/s at batch 192 on an H200, against 723 for
+        the compiled step, benchmarks/loop_bench.py)."""
         for stage in self.stages:
-            stage.compile()
-        self.action.compile()
+            stage.compile(dynamic=False)
+        self.action.compile(dynamic=False)
+
+    @staticmethod
+    def eager():
+        """A context in which the compiled parts run eagerly (and nothing is compiled)."""
+        return torch.compiler.set_stance("force_eager")
 
     @torch.no_grad()
     def predict(self, obs: Observation) -> Prediction:

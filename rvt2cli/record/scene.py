@@ -51,8 +51,12 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
             return configs
 
     RVT2Scene.__name__ = f"RVT2{base.__name__}"
+    # The scene is built anew at every reset (200 ms on the CPU): a reused PhysX scene carries contact and
+    # solver state from one episode into the next, so an episode would depend on the episodes its process
+    # ran before (which worker, in which order), not on its seed alone.
+    kwargs = {"reconfiguration_freq": 1, **task.env_kwargs}
     env = RVT2Scene(obs_mode="none", control_mode="pd_joint_pos", reward_mode="none", sim_backend="cpu",
-                    render_mode="rgb_array", **task.env_kwargs)
+                    render_mode="rgb_array", **kwargs)
     env.rvt2_cameras = camera_names
     return env
 

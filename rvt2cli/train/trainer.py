@@ -28,7 +28,7 @@ from rvt2cli.errors import UserError
 from rvt2cli.model.config import ModelConfig, get_config
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.model.policy import RVT2Policy
-from rvt2cli.train.batches import PackedSamples, TaskUniformSampler, make_batch, pack
+from rvt2cli.train.batches import BatchStream, PackedSamples, make_batch, pack
 from rvt2cli.train.checkpoint import Checkpoint, load_checkpoint, load_weights, save_checkpoint
 from rvt2cli.train.metrics import headline, precision_report, score_predictions
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
@@ -163,7 +163,8 @@ def count_flops(policy: RVT2Policy, packed, device) -> float | None:
 
     batch = make_batch(packed, np.array([0]), policy.cfg, torch.Generator().manual_seed(0))
     counter = FlopCounterMode(display=False)
-    with counter, torch.no_grad():
+    # eagerly: under FlopCounterMode torch would skip compiling the network for the rest of the run
+    with counter, torch.no_grad(), policy.eager():
         policy(batch.obs, batch.position, batch.rot_bins, batch.stage2_center)
     return float(counter.get_total_flops())
 
@@ -328,7 +329,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
         model = torch.nn.parallel.DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None)
     amp = opts.amp and device.type == "cuda"
     train_step = TrainStep(policy, optimizer, state.schedule, amp, opts.clip, model)
-    sampler = TaskUniformSampler(data.packed.task)
+    batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment)
     samples = data.samples
     info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs, "options": opts.to_json()}
     log = RunLog(run_dir, state.step) if rank == 0 else None
@@ -371,8 +372,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     policy.train()
     try:
         while state.step < opts.steps:
-            batch = make_batch(data.packed, sampler.sample(opts.batch_size, state.generator), cfg, state.generator,
-                               max_translation=0.125 if opts.augment else 0.0, max_yaw_deg=45.0 if opts.augment else 0.0)
+            batch = next(batches)
             lr_now = state.schedule.get_last_lr()[0]
             step_result = train_step(batch)
             state.step += 1
@@ -383,7 +383,8 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
             if step % opts.log_every == 0 or validate or save or step == opts.steps:
                 read_back()
             if validate and rank == 0:
-                scores = score_predictions(policy, data.packed_val, autocast=amp)
+                with policy.eager():  # its batches have other sizes than the compiled training step's
+                    scores = score_predictions(policy, data.packed_val, autocast=amp)
                 report = precision_report(scores, samples.tasks)
                 result.last_validation = headline(report["overall"])
                 log.log_validation(step, result.last_validation, report)
