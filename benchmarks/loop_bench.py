@@ -28,31 +28,25 @@ import numpy as np
 import torch
 
 from benchmarks.machine import describe
-from benchmarks.policy_bench import synthetic_batch
+from benchmarks.policy_bench import synthetic_train_batch, timer
 from rvt2cli.model.config import get_config
 from rvt2cli.model.policy import RVT2Policy
-from rvt2cli.train.batches import Batch, BatchStream
+from rvt2cli.train.batches import BatchStream
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
 from rvt2cli.train.step import TrainStep
 from rvt2cli.train.trainer import TrainOptions, load_data, train
-
-
-def sync(device) -> float:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter()
 
 
 def time_steps(step, next_batch, steps: int, warmup: int, device) -> dict:
     """Wall and host milliseconds per step of `step(next_batch())`."""
     for _ in range(warmup):
         step(next_batch())
-    start, host = sync(device), 0.0
+    start, host = timer(device), 0.0
     for _ in range(steps):
         t = time.perf_counter()
         step(next_batch())
         host += time.perf_counter() - t
-    wall = sync(device) - start
+    wall = timer(device) - start
     return {"wall_ms": 1000 * wall / steps, "host_ms": 1000 * host / steps}
 
 
@@ -138,9 +132,7 @@ def main() -> None:
     train_step = TrainStep(policy, optimizer, warmup_cosine(optimizer, 10, 100_000), amp, opts.clip)
     policy.train()
 
-    obs, target, bins, flags = synthetic_batch(cfg, args.batch_size, args.points, device)
-    synthetic = Batch(obs=obs, position=target, rot_bins=bins, gripper=flags[:, 0], collision=flags[:, 1],
-                      quaternion=None, half=None, stage2_center=target)
+    synthetic = synthetic_train_batch(cfg, args.batch_size, args.points, device)
     real = next(BatchStream(data.packed, cfg, torch.Generator().manual_seed(0), args.batch_size))
 
     def stream() -> BatchStream:
@@ -151,10 +143,10 @@ def main() -> None:
     next(made)
     host_times, full_times = [], []
     for _ in range(5):
-        t0 = sync(device)
-        batch = next(made)
+        t0 = timer(device)
+        next(made)
         host_times.append(time.perf_counter() - t0)
-        full_times.append(sync(device) - t0)
+        full_times.append(timer(device) - t0)
     rows["batch_only"] = {"host_ms": 1000 * float(np.median(host_times)), "wall_ms": 1000 * float(np.median(full_times))}
 
     variants = {"synthetic": lambda: synthetic, "real": lambda: real, "loop": stream().__next__}

@@ -38,6 +38,13 @@ def synthetic_batch(cfg, batch: int, points: int, device, seed: int = 0):
     return obs, target, bins, flags
 
 
+def synthetic_train_batch(cfg, batch: int, points: int, device) -> Batch:
+    """A training batch of synthetic clouds, stage 2 centred on the target."""
+    obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
+    return Batch(obs=obs, position=target, rot_bins=bins, gripper=flags[:, 0], collision=flags[:, 1], quaternion=None,
+                 half=None, stage2_center=target)
+
+
 def timer(device):
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -52,9 +59,7 @@ def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: i
         policy.compile_network()
     optimizer, name = make_optimizer(policy.parameters(), 3e-4, 1e-4, device, eight_bit)
     schedule = warmup_cosine(optimizer, 10, 10_000)
-    obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
-    data = Batch(obs=obs, position=target, rot_bins=bins, gripper=flags[:, 0], collision=flags[:, 1], quaternion=None,
-                 half=None, stage2_center=target)
+    data = synthetic_train_batch(cfg, batch, points, device)
     train_step = TrainStep(policy, optimizer, schedule, amp=device.type == "cuda", clip=5.0)
     amp = device.type == "cuda"
 

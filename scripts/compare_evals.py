@@ -5,17 +5,22 @@ and error at rest.
     python scripts/compare_evals.py EVAL_DIR_A EVAL_DIR_B
 """
 
-import json
 import sys
 from pathlib import Path
 
+from rvt2cli.errors import UserError
+from rvt2cli.eval.journal import NAME, episode_key, read_journal
+
 
 def episodes(folder: str) -> dict:
-    path = Path(folder) / "episodes.jsonl"
+    path = Path(folder) / NAME
     if not path.exists():
         sys.exit(f"{path}: no evaluation journal here; give two `rvt2 eval --out` folders")
-    records = [json.loads(line) for line in path.read_text().splitlines()[1:] if line.strip()]
-    return {(r["source"], r["task"], r["seed"]): r for r in records}
+    try:
+        _, records = read_journal(path)
+    except UserError as error:
+        sys.exit(str(error))
+    return {episode_key(r): r for r in records}
 
 
 def main() -> None:

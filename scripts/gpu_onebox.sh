@@ -69,8 +69,10 @@ while [ $# -gt 0 ]; do
       for f in .gl/*.deb; do dpkg -x "$f" /; done
       ldconfig
     fi
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
-    "${RVT2[@]}" doctor | tee -a "$OUT/gpu.txt"
+    # kept in $W for `results` ($OUT is emptied before every call)
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$W/gpu.txt"
+    "${RVT2[@]}" doctor | tee -a "$W/gpu.txt"
+    cp "$W/gpu.txt" "$OUT/"
     phase setup $(( $(clock) - t ))
     ;;
   bench)  # the training step rvt2 train runs, at the paper's batch and the one we train with
@@ -173,7 +175,6 @@ while [ $# -gt 0 ]; do
   results)  # every small result in one file (a call returns at most 8 files)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
     files=(phases.tsv ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt)
-    cp "$OUT/gpu.txt" "$W/" 2>/dev/null || true
     for run in $RUNS; do
       files+=("train_$run.log" "runs/$run/train.csv" "runs/$run/validation.csv" "runs/$run/run.json" "eval_$run/eval.json"
               "eval_$run/eval.md" "eval_$run/episodes.jsonl" "offline_$run/offline.json" "offline_$run/offline.md"

@@ -18,8 +18,21 @@ NAME = "episodes.jsonl"
 FORMAT = 1
 
 
-def _key(record: dict) -> tuple[str, str, int]:
+def episode_key(record: dict) -> tuple[str, str, int]:
     return record["source"], record["task"], record["seed"]
+
+
+def read_journal(path: Path) -> tuple[dict, list[dict]]:
+    """(plan, episode records) of a journal; a last line cut off by a kill is left out."""
+    lines = path.read_text().split("\n")[:-1]  # what follows the last newline is an unfinished line
+    try:
+        plan = json.loads(lines[0])["plan"]
+    except (IndexError, json.JSONDecodeError, KeyError, TypeError):
+        raise UserError(f"{path}: not an rvt2 evaluation journal; choose another --out") from None
+    try:
+        return plan, [json.loads(line) for line in lines[1:]]
+    except json.JSONDecodeError:
+        raise UserError(f"{path}: damaged journal line; choose another --out") from None
 
 
 class Journal:
@@ -38,28 +51,19 @@ class Journal:
     def _read(self, plan: dict) -> list[dict]:
         text = self.path.read_text()
         if text and not text.endswith("\n"):  # the line being written when the run was killed: drop it
-            text = text[: text.rfind("\n") + 1]
             with atomic_open(self.path, "w") as f:
-                f.write(text)
-        lines = text.splitlines()
-        try:
-            header = json.loads(lines[0])
-            stored = header["plan"]
-        except (IndexError, json.JSONDecodeError, KeyError, TypeError):
-            raise UserError(f"{self.path}: not an rvt2 evaluation journal; choose another --out") from None
+                f.write(text[: text.rfind("\n") + 1])
+        stored, records = read_journal(self.path)
         changed = [k for k in sorted(set(plan) | set(stored)) if plan.get(k) != stored.get(k)]
         if changed:
             k = changed[0]
             raise UserError(f"{self.path}: was run with {k} = {stored.get(k)!r}, this command has {plan.get(k)!r}; "
                             "--resume needs the same options (or choose another --out)")
-        try:
-            return [json.loads(line) for line in lines[1:]]
-        except json.JSONDecodeError:
-            raise UserError(f"{self.path}: damaged journal line; choose another --out") from None
+        return records
 
     @property
     def finished(self) -> set[tuple[str, str, int]]:
-        return {_key(r) for r in self.records}
+        return {episode_key(r) for r in self.records}
 
     def append(self, record: dict) -> None:
         self.records.append(record)

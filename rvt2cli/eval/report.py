@@ -92,8 +92,9 @@ def build_report(records: list[dict], meta: dict) -> dict:
     if len(tasks) > 1:
         report["average"] = {s: sum(report["tasks"][t][s]["success_rate"] for t in tasks if s in report["tasks"][t]) / len(tasks)
                              for s in sources}
+    per_source = {s: summarize([r for r in records if r["source"] == s]) for s in sources}
     for key in ("pose_error", "pose_error_free", "pose_error_contact"):
-        report[key] = {s: summarize([r for r in records if r["source"] == s])[key] for s in sources}
+        report[key] = {s: per_source[s][key] for s in sources}
     return report
 
 
