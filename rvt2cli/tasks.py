@@ -33,6 +33,7 @@ class Task:
     show_hidden: tuple[str, ...] = ()  # objects ManiSkill hides from cameras that the policy must see
     planner_speed: float = 0.9         # fraction of the Panda's joint velocity/acceleration limits (as the expert)
     gripper_close: float = -1.0        # the gripper command that closes it (as the expert; some grip softer)
+    insertion: bool = False            # the point is fitting a held object into a close fit (failure reasons say how short)
     env_kwargs: dict = field(default_factory=dict)
 
     def instruction(self, seed: int) -> tuple[str, int]:

@@ -17,7 +17,8 @@
 #   bash scripts/gpu_onebox.sh weights FIRST COUNT    # float16 weight pieces FIRST.. (and meta.tar with 0) to $OUT
 # Here:    tar -xf meta.tar in the pieces' folder; python scripts/gpu_checkpoint.py restore PIECES_DIR runs/NAME
 # Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
-# "--compile --seed 1", "--episodes-per-task 10 --cameras front"), EVAL_EPISODES, WORKERS, RUNS (results).
+# "--compile --seed 1", "--episodes-per-task 10 --cameras front"), DATA (the demos RUN trains on),
+# OFFLINE_DEMOS (the held-out demos RUN is scored on), EVAL_EPISODES, WORKERS, RUNS (results).
 # scripts/gpu_results_v2.sh holds the exact calls behind docs/RESULTS.md v2.
 set -euo pipefail
 W=${W:-/tmp/w}
@@ -93,6 +94,27 @@ while [ $# -gt 0 ]; do
     "${RVT2[@]}" extract-keyframes "$W/demos" 2>&1 | tail -1
     phase keyframes $(( $(clock) - t ))
     ;;
+  merged)  # a copy of the demos and held-out demos whose keyframe refinements under MERGE_MM are merged
+    t=$(clock)
+    for d in demos heldout; do
+      rm -rf "$W/${d}_merged" && cp -r "$W/$d" "$W/${d}_merged"
+      "${RVT2[@]}" extract-keyframes "$W/${d}_merged" --merge-refinements "${MERGE_MM:-30}" | tail -1
+    done
+    phase merged $(( $(clock) - t ))
+    ;;
+  oracle)  # the executor's ceiling on the evaluation seeds: the expert's keyframes, closed loop
+    t=$(clock)
+    "${RVT2[@]}" eval --oracle --tasks "$(echo $TASKS | tr ' ' ,)" --episodes "$EVAL_EPISODES" --seed 10000 \
+      --workers "$WORKERS" --out "$W/eval_oracle" --no-progress 2>&1 | tail -10
+    phase oracle $(( $(clock) - t ))
+    ;;
+  replay)  # a recorded evaluation's predicted keyframes through today's executor (REPLAY: its journal)
+    t=$(clock)
+    "${RVT2[@]}" eval --replay "${REPLAY:-benchmarks/results/ddp_h200x2/eval_10000/episodes.jsonl}" \
+      --tasks "${REPLAY_TASKS:-insert_peg,plug_charger,lift_peg_upright}" --episodes "$EVAL_EPISODES" --seed 10000 \
+      --workers "$WORKERS" --out "$W/eval_replay" --no-progress 2>&1 | tail -5
+    phase replay $(( $(clock) - t ))
+    ;;
   heldout)  # held-out demos for offline scores: HELDOUT_TASKS x 5 from seed 30000 (training demos use 0 upwards)
     t=$(clock)
     for task in ${HELDOUT_TASKS:-$TASKS}; do
@@ -107,7 +129,7 @@ while [ $# -gt 0 ]; do
     launch=("${RVT2[@]}")
     if [ "$NPROC" -gt 1 ]; then launch=(python3 -m torch.distributed.run --standalone --nproc-per-node "$NPROC" -m rvt2cli); fi
     # shellcheck disable=SC2086  # TRAIN_ARGS is a list of options
-    "${launch[@]}" train --data "$W/demos" --out "$W/runs/$RUN" --config "$CONFIG" --batch-size $((BATCH / NPROC)) \
+    "${launch[@]}" train --data "${DATA:-$W/demos}" --out "$W/runs/$RUN" --config "$CONFIG" --batch-size $((BATCH / NPROC)) \
       --steps "$STEPS" --warmup $((STEPS / 10)) --val-episodes 1 --val-every $((STEPS / 4)) --save-every $((STEPS / 4)) \
       --no-progress ${TRAIN_ARGS---compile} 2>&1 | tee "$W/train_$RUN.log" | grep -v "^step " | tail -4
     phase "train_$RUN" $(( $(clock) - t ))
@@ -168,13 +190,14 @@ while [ $# -gt 0 ]; do
     ;;
   offline)  # millimetres on the held-out demos in $W/heldout (carried from $HELDOUT by stash, or the heldout phase)
     t=$(clock)
-    "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --offline "$W/heldout" --device "$DEVICE" --out "$W/offline_$RUN" \
+    "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --offline "${OFFLINE_DEMOS:-$W/heldout}" --device "$DEVICE" --out "$W/offline_$RUN" \
       --no-progress 2>&1 | tail -12
     phase "offline_$RUN" $(( $(clock) - t ))
     ;;
   results)  # every small result in one file (a call returns at most 8 files)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
-    files=(phases.tsv ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt)
+    files=(phases.tsv ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+           eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     for run in $RUNS; do
       files+=("train_$run.log" "runs/$run/train.csv" "runs/$run/validation.csv" "runs/$run/run.json" "eval_$run/eval.json"
               "eval_$run/eval.md" "eval_$run/episodes.jsonl" "offline_$run/offline.json" "offline_$run/offline.md"
@@ -199,7 +222,7 @@ while [ $# -gt 0 ]; do
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|bench|record|heldout|loopbench|train|ddpbench|eval|repro|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
+    echo "usage: $0 stash|setup|bench|record|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
     exit 2
     ;;
   esac

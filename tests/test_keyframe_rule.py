@@ -101,4 +101,36 @@ def test_a_slow_down_that_does_not_pause_is_no_keyframe():
     speed = np.concatenate([np.linspace(0, 0.3, 10), [0.2, 0.12, 0.09, 0.12, 0.2], np.linspace(0.2, 0.0, 10), np.zeros(3)])
     velocities = np.zeros((len(speed), 7))
     velocities[:, 0] = speed
-    assert [k.frame for k in find_keyframes(np.ones(len(speed), dtype=bool), velocities)] == [24, 27]
+    # the slow-down makes no keyframe; the arm stops at 24, which the last frame (27) stands for
+    assert [k.frame for k in find_keyframes(np.ones(len(speed), dtype=bool), velocities)] == [27]
+
+
+def test_an_arrival_just_before_the_gripper_acts_or_the_end_is_merged_into_that_keyframe():
+    speed = np.concatenate([np.linspace(0, 0.3, 10), np.linspace(0.3, 0.0, 10), np.zeros(10),
+                            np.linspace(0, 0.3, 10), np.linspace(0.3, 0.0, 10), np.zeros(8)])
+    velocities = np.zeros((len(speed), 7))
+    velocities[:, 0] = speed
+    gripper = np.ones(len(speed), dtype=bool)
+    gripper[22:] = False  # closes 3 frames after the arm stops (frame 19)
+    frames = [k.frame for k in find_keyframes(gripper, velocities)]
+    assert 19 not in frames and 22 in frames  # the grasp stands for the arrival
+    gripper[:] = True
+    gripper[29:] = False  # closes 10 frames after it: two keyframes
+    assert [19, 29] == [k.frame for k in find_keyframes(gripper, velocities)][:2]
+
+
+def test_merge_refinements_keeps_the_last_of_a_chain_of_small_corrections():
+    from rvt2cli.keyframes.rule import KeyframeEvent, merge_refinements
+
+    # pre-insert, then corrections of 25, 10, 3 and 1 mm, then a 120 mm insertion (the expert's insert_peg)
+    frames = [10, 20, 30, 40, 50, 60]
+    x = np.cumsum([0.0, 0.025, 0.010, 0.003, 0.001, 0.120])
+    positions = np.zeros((61, 3))
+    for f, xi in zip(frames, x):
+        positions[f, 0] = xi
+    events = [KeyframeEvent(f, ("stopped",)) for f in frames[:-1]] + [KeyframeEvent(60, ("last",))]
+    assert merge_refinements(events, positions, 0.0) == events
+    assert [k.frame for k in merge_refinements(events, positions, 0.030)] == [50, 60]
+    assert [k.frame for k in merge_refinements(events, positions, 0.005)] == [10, 20, 50, 60]
+    grasp = [KeyframeEvent(10, ("stopped",)), KeyframeEvent(20, ("gripper",))]   # a grasp is never merged away
+    assert merge_refinements(grasp, positions, 0.030) == grasp

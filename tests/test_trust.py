@@ -33,6 +33,7 @@ OUT_OF_RANGE = [
     ["extract-keyframes", "x.mcap", "--pause-velocity", "-1"],
     ["extract-keyframes", "x.mcap", "--stop-buffer", "-1"],
     ["extract-keyframes", "x.mcap", "--obs-every", "0"],
+    ["extract-keyframes", "x.mcap", "--merge-refinements", "-1"],
     ["render", "x.mcap", "--frame", "-1"],
     ["render", "x.mcap", "--frame", "0", "--image-size", "0"],
     ["pack-samples", "x", "--out", "s.safetensors", "--episodes-per-task", "0"],

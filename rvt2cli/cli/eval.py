@@ -32,6 +32,9 @@ def register(subparsers) -> None:
                    help=f"control steps per episode: this x the task's max_steps (default {E.step_budget_scale:g}; the "
                         "keyframe budget is the measure, this only ends episodes that keep the arm busy)")
     p.add_argument("--resume", action="store_true", help="continue the evaluation in --out (after a crash or Ctrl-C)")
+    p.add_argument("--replay", metavar="JOURNAL",
+                   help="instead of a checkpoint: the keyframes a policy predicted in a recorded evaluation (its "
+                        "episodes.jsonl), run through this executor (its seeds within --seed and --episodes)")
     p.add_argument("--batch-size", type=COUNT, default=8, help="--offline: observations per forward pass (default 8)")
     p.add_argument("--out", help="output folder (default: CHECKPOINT/eval, or CHECKPOINT/offline)")
     p.add_argument("--device", default=E.device, help="policy device (default cpu)")
@@ -53,7 +56,7 @@ def run(args) -> int:
                        workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
-                       device=args.device, resume=args.resume)
+                       device=args.device, resume=args.resume, replay=args.replay)
     bars = []
 
     def on_start(total):

@@ -2,7 +2,7 @@
 
 import sys
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, number
 from rvt2cli.errors import UserError
 
 
@@ -27,6 +27,9 @@ def register(subparsers) -> None:
                    help=f"frames a rest keyframe blocks the next one (default {d.stop_buffer}, as the reference)")
     p.add_argument("--obs-every", type=COUNT, default=d.obs_every,
                    help=f"an observation start every N frames besides the keyframes (default {d.obs_every}, as the reference)")
+    p.add_argument("--merge-refinements", type=number(0.0), default=d.merge_m * 1000, metavar="MM",
+                   help="drop each rest keyframe that the next rest keyframe moves by less than MM millimetres: an "
+                        "expert's re-aiming in small steps becomes one keyframe (default 0: keep them)")
     p.set_defaults(run=run)
 
 
@@ -36,7 +39,7 @@ def run(args) -> int:
     from rvt2cli.keyframes.rule import KeyframeParams
 
     params = KeyframeParams(stop_velocity=args.stop_velocity, pause_velocity=args.pause_velocity, stop_buffer=args.stop_buffer,
-                            obs_every=args.obs_every)
+                            obs_every=args.obs_every, merge_m=args.merge_refinements / 1000)
     failed = []
     paths = episode_paths(args.files)
     for path in paths:

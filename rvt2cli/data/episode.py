@@ -66,6 +66,7 @@ class RobotTrajectory:
     tcp_pose: np.ndarray          # [T, 7]
     actions: list                 # T entries, list[float] or None (last frame)
     contacts: list[list[str]]     # T entries
+    near: list[list[str]] | None = None  # T entries: bodies within 5 mm (None: recorded without it)
 
     def __len__(self) -> int:
         return len(self.joint_positions)

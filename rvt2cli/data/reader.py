@@ -278,6 +278,7 @@ def read_episode(path: str | Path) -> Episode:
         tcp_pose=np.stack(poses),
         actions=[s["action"] for s in states],
         contacts=[s["contacts"] for s in states],
+        near=[s["near"] for s in states] if all("near" in s for s in states) else None,
     )
     return Episode(
         path=path, format_version=version, meta=meta, instruction=instruction, robot=robot, keyframes=keyframes,

@@ -13,7 +13,7 @@ import jsonschema
 
 from rvt2cli.errors import UserError
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"  # 1.1: rvt2.RobotState may carry `near`
 FORMAT_MAJOR = 1
 
 ROBOT_STATE = "rvt2.RobotState"

@@ -113,7 +113,8 @@ class EpisodeWriter:
         self._mcap.write_json(topics.INSTRUCTION, schemas.INSTRUCTION, obj, self._t(0))
 
     def write_frame(self, frame: int, *, joint_names, joint_positions, joint_velocities, gripper_width: float,
-                    gripper_command: float, action, contacts, tcp_pose, sim_state: dict | None = None) -> None:
+                    gripper_command: float, action, contacts, tcp_pose, sim_state: dict | None = None,
+                    near=None) -> None:
         t = self._t(frame)
         state = {
             "frame": frame,
@@ -125,6 +126,8 @@ class EpisodeWriter:
             "action": None if action is None else [float(v) for v in action],
             "contacts": sorted(contacts),
         }
+        if near is not None:
+            state["near"] = sorted(near)
         self._mcap.write_json(topics.ROBOT_STATE, schemas.ROBOT_STATE, state, t)
         self._mcap.write_protobuf(topics.TCP_POSE, messages.pose_in_frame(tcp_pose, t), t)
         self._mcap.write_protobuf(topics.TF, messages.frame_transform(messages.WORLD_FRAME, topics.TCP_FRAME, tcp_pose, t), t)

@@ -19,11 +19,18 @@ whether the motion into it may touch the scene. The executor
 Every keyframe reports where the TCP came to rest (`Reach`). A pose the planners cannot reach is a
 failed step, not an error: nothing moves.
 
-Collision avoidance guards the way, not the ends: points within CLEAR_RADIUS of the gripper's start
-and goal are dropped, since grasping and placing end (and start) a finger's width from objects, which
-a point cloud of 5 mm resolution cannot tell from a collision. When no collision-free path is found
-at all, the executor plans once more without the cloud (counted as a collision fallback): a point
-cloud cannot tell an object held by its thin edge from an obstacle.
+Collision avoidance guards the way, not the ends (`rvt2cli.eval.robot_geometry`): the planner's cloud
+leaves out every point within CLEARANCE of the robot's links as it stands (the wrist camera's housing
+included), and of the gripper's links where the gripper will stand at the goal, since grasping and
+placing end (and start) a finger's width from objects, which a point cloud of 5 mm resolution cannot
+tell from a collision. When no collision-free path is found at all, the executor plans once more
+without the cloud (counted as a collision fallback): a point cloud cannot tell an object held by its
+thin edge from an obstacle.
+
+A pose the arm cannot take exactly (no inverse-kinematics solution within the joint limits, typically
+a prediction a few millimetres beyond the arm's reach) is replaced by the nearest pose it can take, if
+that is within REACH_SLACK: a real arm under Cartesian control goes as far as it can, and the error
+is reported against the pose asked for. Further off, the keyframe is unreachable (`Reach.why`).
 """
 
 from dataclasses import dataclass
@@ -32,6 +39,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rvt2cli.data.keyframes import Keyframe
+from rvt2cli.eval.robot_geometry import RobotGeometry
 from rvt2cli.record.scene import tcp_pose
 from rvt2cli.robot import RobotFacts, planner_description
 
@@ -49,7 +57,10 @@ SCREW_STEP = 0.01
 MAX_CORRECTION = 0.1       # rad: a larger IK correction of a path's end means another IK branch: not blended in
 REST_SPEED = 0.02          # rad/s: the keyframe rule's "at rest" (demo keyframes are where the arm stopped)
 COLLISION_RESOLUTION = 0.005  # m, radius of the collision points
-CLEAR_RADIUS = 0.06        # m, around the TCP at the start and the goal of a motion
+CLEARANCE = COLLISION_RESOLUTION + 0.005  # m: cloud points this close to the robot at a motion's ends are left out
+REACH_SLACK_M = 0.02       # the nearest pose the arm can take stands in for a target at most this far...
+REACH_SLACK_DEG = 5.0      # ...and this much turned from it
+UNREACHABLE = ("no_ik", "no_path")   # Reach.why: no pose within REACH_SLACK; a pose, but no plan to it
 
 
 @dataclass(frozen=True)
@@ -70,10 +81,13 @@ class Reach:
     planner: str                        # "screw", "rrt", or "none" (no plan)
     collision_fallback: bool = False    # reached only by planning without the scene cloud
     servo_steps: int = 0                # control steps spent servoing after the path
+    why: str | None = None              # unreached: one of UNREACHABLE
+    nearest: bool = False               # the target was out of reach: went to the nearest pose within REACH_SLACK
+    start_in_collision: bool = False    # the planner's cloud touched the robot where it stood (should never be)
 
     @staticmethod
-    def unreachable() -> "Reach":
-        return Reach(False, None, None, "none")
+    def unreachable(why: str, start_in_collision: bool = False) -> "Reach":
+        return Reach(False, None, None, "none", why=why, start_in_collision=start_in_collision)
 
 
 class StepBudgetExhausted(Exception):
@@ -99,6 +113,7 @@ class Executor:
         self.robot = agent.robot
         self.facts = RobotFacts.from_agent(agent)
         urdf, srdf = planner_description(agent)
+        self.geometry = RobotGeometry.from_urdf(urdf, self.facts.arm_joints[-1])
         self.joint_names = [joint.get_name() for joint in self.robot.get_active_joints()]
         self.planner = mplib.Planner(urdf=urdf, srdf=srdf, user_link_names=[link.get_name() for link in self.robot.get_links()],
                                      user_joint_names=self.joint_names, move_group=self.facts.tcp_link)
@@ -144,18 +159,49 @@ class Executor:
         qx, qy, qz, qw = target.quaternion
         return np.array([*target.position, qw, qx, qy, qz])
 
+    def link_poses(self, qpos: np.ndarray) -> dict[str, np.ndarray]:
+        """World pose (4x4) of every link with collision geometry, at the full joint vector `qpos`."""
+        model = self.planner.pinocchio_model
+        model.compute_forward_kinematics(np.asarray(qpos, dtype=np.float64))
+        base = self.planner.robot.get_base_pose()
+        world = np.eye(4)
+        world[:3, :3] = Rotation.from_quat([*base[4:7], base[3]]).as_matrix()
+        world[:3, 3] = base[:3]
+        poses = {}
+        for name in self.geometry.hulls:
+            pose = model.get_link_pose(self.planner.link_name_2_idx[name])
+            local = np.eye(4)
+            local[:3, :3] = Rotation.from_quat([*pose[4:7], pose[3]]).as_matrix()
+            local[:3, 3] = pose[:3]
+            poses[name] = world @ local
+        return poses
+
+    def clear_cloud(self, scene_points: np.ndarray, target: Keyframe) -> np.ndarray:
+        """The scene points a plan to `target` must avoid: not those at the robot as it stands, nor
+        those at the gripper's links where they will stand at the target."""
+        start = self.link_poses(self.qpos())
+        tcp_now, tcp_goal = np.eye(4), np.eye(4)
+        now = self.tcp_pose()
+        tcp_now[:3, :3], tcp_now[:3, 3] = Rotation.from_quat(now[3:]).as_matrix(), now[:3]
+        tcp_goal[:3, :3], tcp_goal[:3, 3] = Rotation.from_quat(target.quaternion).as_matrix(), target.position
+        move = tcp_goal @ np.linalg.inv(tcp_now)
+        goal = {name: move @ pose for name, pose in start.items() if name in self.geometry.rides_with_tcp}
+        near = self.geometry.near(scene_points, start, CLEARANCE) | self.geometry.near(scene_points, goal, CLEARANCE)
+        return scene_points[~near]
+
+    def _start_in_collision(self) -> bool:
+        return len(self.planner.check_for_env_collision(qpos=self.qpos(), with_point_cloud=True)) > 0
+
     def plan(self, target: Keyframe, scene_points: np.ndarray | None) -> tuple[str, dict] | None:
         """(planner name, mplib result) of a motion to the target, or None."""
         goal = self._mplib_pose(target)
         avoid = not target.ignore_collisions and scene_points is not None and len(scene_points) > 0
         if avoid:
-            start = self.tcp_pose()[:3]
-            position = np.asarray(target.position)
-            far = ((np.linalg.norm(scene_points - start, axis=1) > CLEAR_RADIUS)
-                   & (np.linalg.norm(scene_points - position, axis=1) > CLEAR_RADIUS))
-            avoid = bool(far.any())
+            kept = self.clear_cloud(scene_points, target)
+            avoid = len(kept) > 0
             if avoid:
-                self.planner.update_point_cloud(scene_points[far], radius=COLLISION_RESOLUTION)
+                self.planner.update_point_cloud(kept, radius=COLLISION_RESOLUTION)
+                self.start_collided = self.start_collided or self._start_in_collision()
         result = self.planner.plan_screw(goal, self.qpos(), qpos_step=SCREW_STEP, time_step=self.time_step,
                                          use_point_cloud=avoid)
         if result["status"] == "Success":
@@ -177,6 +223,28 @@ class Executor:
         if not converged or np.any(arm < limits[:, 0] - 1e-6) or np.any(arm > limits[:, 1] + 1e-6):
             return None
         return arm
+
+    def nearest_reachable(self, target: Keyframe) -> Keyframe | None:
+        """The pose nearest to the target that the arm can take (closed-loop IK clamped to the joint
+        limits, from where the arm stands), if it is within REACH_SLACK of the target; else None."""
+        limits = np.asarray(self.planner.joint_limits)
+        model = self.planner.pinocchio_model
+        goal = self.planner.transform_goal_to_wrt_base(self._mplib_pose(target))
+        # damped: at the edge of the workspace (a singular arm) undamped steps diverge
+        q, _, _ = model.compute_IK_CLIK_JL(self.tcp_index, goal, self.qpos().astype(np.float64), limits[:, 0], limits[:, 1],
+                                           max_iter=3000, damp=1e-3)
+        model.compute_forward_kinematics(q)
+        base_pose = model.get_link_pose(self.tcp_index)   # [x y z qw qx qy qz] in the robot's base frame
+        base = self.planner.robot.get_base_pose()
+        base_rot = Rotation.from_quat([*base[4:7], base[3]])
+        position = base_rot.apply(base_pose[:3]) + base[:3]
+        quaternion = (base_rot * Rotation.from_quat([*base_pose[4:7], base_pose[3]])).as_quat()
+        nearest = Keyframe.from_pose([*position, *quaternion], target.gripper_open, target.ignore_collisions,
+                                     target.frame, target.reasons)
+        position_error, rotation_error = pose_error(nearest.pose, target)
+        if position_error > REACH_SLACK_M or rotation_error > REACH_SLACK_DEG:
+            return None
+        return nearest
 
     # --- moving ----------------------------------------------------------------------------------------
     def _follow(self, path: np.ndarray, goal: np.ndarray | None) -> np.ndarray:
@@ -223,17 +291,32 @@ class Executor:
             for _ in range(GRIPPER_STEPS):
                 self._step(hold)
 
-    def execute(self, target: Keyframe, scene_points: np.ndarray | None = None) -> Reach:
-        """Move to the keyframe and set the gripper. An unreachable pose moves nothing.
-        Raises StepBudgetExhausted when the episode's control steps run out."""
+    def _plan_with_fallback(self, target: Keyframe, scene_points: np.ndarray | None):
+        """(planner, result, collision fallback used) or None."""
         planned = self.plan(target, scene_points)
-        fallback = False
         if planned is None and scene_points is not None and not target.ignore_collisions:
             planned = self.plan(target, None)
-            fallback = planned is not None
+            return (*planned, True) if planned else None
+        return (*planned, False) if planned else None
+
+    def execute(self, target: Keyframe, scene_points: np.ndarray | None = None) -> Reach:
+        """Move to the keyframe (or, out of reach, to the nearest pose within REACH_SLACK) and set the
+        gripper. An unreachable pose moves nothing. Raises StepBudgetExhausted when the episode's control
+        steps run out."""
+        self.start_collided = False
+        asked, nearest = target, False
+        planned = self._plan_with_fallback(target, scene_points)
         if planned is None:
-            return Reach.unreachable()
-        planner, result = planned
+            stand_in = self.nearest_reachable(target)
+            if stand_in is None:
+                return Reach.unreachable("no_ik", self.start_collided)
+            if pose_error(stand_in.pose, target)[0] < 1e-4:  # the target itself is within reach: no way there
+                return Reach.unreachable("no_path", self.start_collided)
+            target, nearest = stand_in, True
+            planned = self._plan_with_fallback(target, scene_points)
+            if planned is None:
+                return Reach.unreachable("no_path", self.start_collided)
+        planner, result, fallback = planned
         path = np.asarray(result["position"])[:, : len(self.arm)] if len(result["position"]) else np.zeros((0, len(self.arm)))
         near = self.qpos().astype(np.float64)
         if len(path):
@@ -241,6 +324,7 @@ class Executor:
         goal = self.inverse_kinematics(target, near)
         command = self._follow(path, goal)
         command, servo_steps = self._servo(target, command)
-        position, rotation = pose_error(self.tcp_pose(), target)
+        position, rotation = pose_error(self.tcp_pose(), asked)
         self._set_gripper(target.gripper_open, command)
-        return Reach(True, position * 1000.0, rotation, planner, fallback, servo_steps)
+        return Reach(True, position * 1000.0, rotation, planner, fallback, servo_steps, nearest=nearest,
+                     start_in_collision=self.start_collided)

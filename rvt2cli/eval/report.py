@@ -13,7 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from rvt2cli.atomic import atomic_open
+from rvt2cli.errors import UserError
 from rvt2cli.eval.rollout import FAILURE_KINDS, Outcome
+from rvt2cli.eval.taxonomy import REASONS, count_reasons, failure_reason, insertion_gap_mm
+from rvt2cli.tasks import get_task
 
 SOURCES = ("policy", "oracle")
 
@@ -38,7 +41,9 @@ def episode_record(source: str, outcome: Outcome) -> dict:
             "steps": [{"frame": s.frame, "reached": s.reach.reached, "retry": s.retry, "planner": s.reach.planner,
                        "position_error_mm": s.reach.position_error_mm, "rotation_error_deg": s.reach.rotation_error_deg,
                        "servo_steps": s.reach.servo_steps, "target": list(s.keyframe.pose),
-                       "gripper_open": s.keyframe.gripper_open, "ignore_collisions": s.keyframe.ignore_collisions}
+                       "gripper_open": s.keyframe.gripper_open, "ignore_collisions": s.keyframe.ignore_collisions,
+                       "why": s.reach.why, "nearest": s.reach.nearest, "start_in_collision": s.reach.start_in_collision,
+                       "held": s.held, "gap_mm": s.gap_mm}
                       for s in outcome.steps]}
 
 
@@ -57,7 +62,7 @@ def pose_errors(steps: list[dict]) -> dict:
             "rotation_deg": _percentiles([s["rotation_error_deg"] for s in reached])}
 
 
-def summarize(records: list[dict]) -> dict:
+def summarize(records: list[dict], insertion: bool = False) -> dict:
     n = len(records)
     wins = sum(r["success"] for r in records)
     lo, hi = wilson_interval(wins, n)
@@ -69,6 +74,11 @@ def summarize(records: list[dict]) -> dict:
         "successes_within_task_steps": sum(r["success"] and r["control_steps"] <= r.get("task_max_steps", math.inf)
                                            for r in records),
         "failures": {kind: sum(r["failure"] == kind for r in records) for kind in FAILURE_KINDS},
+        "reasons": count_reasons(records, insertion),
+        "insertion_gap_mm": _percentiles([g for g in (insertion_gap_mm(r) for r in records if not r["success"]) if g is not None]),
+        "unreached_per_episode": sum(r["unreached_keyframes"] for r in records) / n if n else 0.0,
+        "nearest_pose_keyframes": sum(s.get("nearest", False) for r in records for s in r.get("steps", [])),
+        "start_in_collision_keyframes": sum(s.get("start_in_collision", False) for r in records for s in r.get("steps", [])),
         "unreached_keyframes": sum(r["unreached_keyframes"] for r in records),
         "replans": sum(r.get("replans", 0) for r in records),
         "collision_fallbacks": sum(r["collision_fallbacks"] for r in records),
@@ -84,10 +94,12 @@ def build_report(records: list[dict], meta: dict) -> dict:
     """Per task and source (policy / oracle): success with its interval, failures, pose errors."""
     records = sorted(records, key=lambda r: (SOURCES.index(r["source"]), r["task"], r["seed"]))
     tasks = sorted({r["task"] for r in records})
+    insertion = {task: _is_insertion(task) for task in tasks}
+    records = [{**r, "reason": failure_reason(r, insertion[r["task"]])} for r in records]
     sources = [s for s in SOURCES if any(r["source"] == s for r in records)]
     report = {**meta, "tasks": {}, "episodes": records}
     for task in tasks:
-        report["tasks"][task] = {s: summarize([r for r in records if r["task"] == task and r["source"] == s])
+        report["tasks"][task] = {s: summarize([r for r in records if r["task"] == task and r["source"] == s], insertion[task])
                                  for s in sources if any(r["task"] == task and r["source"] == s for r in records)}
     if len(tasks) > 1:
         report["average"] = {s: sum(report["tasks"][t][s]["success_rate"] for t in tasks if s in report["tasks"][t]) / len(tasks)
@@ -96,6 +108,13 @@ def build_report(records: list[dict], meta: dict) -> dict:
     for key in ("pose_error", "pose_error_free", "pose_error_contact"):
         report[key] = {s: per_source[s][key] for s in sources}
     return report
+
+
+def _is_insertion(task: str) -> bool:
+    try:
+        return get_task(task).insertion
+    except UserError:  # a task of an older rvt2, kept in a journal: no insertion check
+        return False
 
 
 def _mm(stats: dict) -> str:
@@ -134,6 +153,17 @@ def markdown(report: dict) -> str:
                                                    for s, r in per.items() if "successes_within_task_steps" in r)
                            for task, per in report["tasks"].items())
         lines += ["", f"Successes within each task's own max_steps (a budget of 1 x): {within}."]
+    lines += ["", "Why episodes failed (rvt2cli.eval.taxonomy), per task and source; for insertion tasks the "
+              "median gap to success, mm, of the failed episodes' closest approach with the object in hand:", "",
+              "| task | source | " + " | ".join(REASONS) + " | gap mm | unreached per episode |",
+              "|---|---|" + "---|" * (len(REASONS) + 2)]
+    for task, per in report["tasks"].items():
+        for s in sources:
+            r = per.get(s)
+            if r:
+                gap = r["insertion_gap_mm"]["median"]
+                lines.append(f"| {task} | {s} | " + " | ".join(str(r["reasons"].get(k, 0)) for k in REASONS)
+                             + f" | {'-' if gap is None else f'{gap:.1f}'} | {r['unreached_per_episode']:.2f} |")
     lines += ["", "Error at rest: distance between the TCP, once the arm has come to rest, and the keyframe's pose, "
               "over every keyframe the executor reached. By kind of keyframe, mm (median / p95) and deg (median / p95):", "",
               "| source | keyframes in free space (avoiding collisions) | mm | deg | keyframes into contact (ignoring collisions) | mm | deg |",

@@ -35,6 +35,8 @@ class Step:
     keyframe: Keyframe
     reach: Reach
     retry: int = 0          # 0: the source's first prediction for this state; n: its n-th re-prediction
+    held: bool = False      # an object is between the fingers after it
+    gap_mm: float | None = None  # insertion tasks: how far the object is from success after it
 
     @property
     def reached(self) -> bool:
@@ -79,6 +81,19 @@ class KeyframeSource:
         raise NotImplementedError
 
 
+def insertion_gap_mm(env) -> float | None:
+    """How far an insertion task's object is from success (0 when inside the task's tolerance), from
+    what the ManiSkill task's own success check measures; None for a task that measures no such thing."""
+    info = env.unwrapped.evaluate()
+    if "peg_head_pos_at_hole" in info:   # PegInsertionSide: the peg's head in the hole's frame, x into the hole
+        depth, across = info["peg_head_pos_at_hole"][0, 0].item(), info["peg_head_pos_at_hole"][0, 1:].abs().max().item()
+        radius = env.unwrapped.box_hole_radii[0].item()
+        return 1000.0 * float(np.hypot(max(0.0, -0.015 - depth), max(0.0, across - radius)))
+    if "obj_to_goal_dist" in info:       # PlugCharger: success within 5 mm of the goal
+        return 1000.0 * max(0.0, info["obj_to_goal_dist"][0].item() - 0.005)
+    return None
+
+
 def _collision_points(env, frames, segmentation, bounds) -> np.ndarray:
     """The scene cloud for the planner: without the robot, and without what it holds (it moves with it)."""
     drop = segmentation_ids(env, held_objects(env), include_robot=True)
@@ -115,7 +130,8 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
             scene_points = None if keyframe.ignore_collisions else _collision_points(env, frames, segmentation, task.scene_bounds)
             frame = executor.steps
             reach = executor.execute(keyframe, scene_points)
-            outcome.steps.append(Step(frame=frame, keyframe=keyframe, reach=reach, retry=retry))
+            outcome.steps.append(Step(frame=frame, keyframe=keyframe, reach=reach, retry=retry, held=bool(held_objects(env)),
+                                      gap_mm=insertion_gap_mm(env) if task.insertion else None))
             if bool(env.unwrapped.evaluate()["success"].item()):
                 outcome.success = True
                 break

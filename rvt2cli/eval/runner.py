@@ -45,6 +45,11 @@ class _Worker:
     def __init__(self, opts: EvalOptions, demos: dict):
         self.opts, self.demos = opts, demos
         self.envs, self.policy, self.oracles, self.rigs = {}, None, {}, {}
+        if opts.replay:
+            from rvt2cli.eval.journal import read_journal
+            from rvt2cli.eval.sources import ReplaySource
+
+            self.policy = ReplaySource(read_journal(Path(opts.replay))[1])
         if opts.checkpoint:
             from rvt2cli.eval.sources import PolicySource
             from rvt2cli.train.checkpoint import load_policy
@@ -112,7 +117,9 @@ def _demo_seeds(paths) -> dict[tuple[str, int], str]:
     return demos
 
 
-def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict) -> list[Job]:
+def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict,
+              replayed: dict[str, set[int]] | None = None) -> list[Job]:
+    """The episodes to run; `replayed`: a recorded evaluation's seeds per task (--replay)."""
     tasks = list(opts.tasks) or checkpoint_tasks or sorted({t for t, _ in demos})
     if not tasks:
         raise UserError("no tasks to evaluate: give --tasks (or a checkpoint, whose training tasks are the default)")
@@ -123,6 +130,9 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict) -> li
         demo_seeds = sorted(seed for task, seed in demos if task == name)
         if opts.checkpoint:
             jobs += [Job("policy", name, s) for s in range(opts.seed, opts.seed + opts.episodes)]
+        if replayed is not None:
+            jobs += [Job("policy", name, s) for s in sorted(replayed.get(name, ()))
+                     if opts.seed <= s < opts.seed + opts.episodes]
         if opts.oracle:
             seeds = demo_seeds if demos else list(range(opts.seed, opts.seed + opts.episodes))
             jobs += [Job("oracle", name, s) for s in seeds]
@@ -139,16 +149,31 @@ def untrained_tasks(opts: EvalOptions, checkpoint_tasks: list[str]) -> list[str]
 def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     """Run every job not yet in the journal; `on_start(number_of_episodes)` once the inputs are checked,
     `on_outcome(job, outcome, finished)` after each episode (the CLI's progress bar)."""
-    if not opts.checkpoint and not opts.oracle:
+    if not opts.checkpoint and not opts.oracle and not opts.replay:
         raise UserError("eval needs --checkpoint (and/or --oracle)")
-    checkpoint_tasks, checkpoint_path = [], None
+    if opts.checkpoint and opts.replay:
+        raise UserError("eval takes --checkpoint or --replay, not both: --replay runs a recorded evaluation's keyframes")
+    checkpoint_tasks, checkpoint_path, replayed = [], None, None
+    if opts.replay:
+        from rvt2cli.eval.journal import read_journal
+
+        journal_path = Path(opts.replay)
+        if not journal_path.is_file():
+            raise UserError(f"{journal_path}: no such evaluation journal (an episodes.jsonl written by rvt2 eval)")
+        replayed = {}
+        for record in read_journal(journal_path)[1]:
+            if record["source"] == "policy":
+                replayed.setdefault(record["task"], set()).add(record["seed"])
+        if not replayed:
+            raise UserError(f"{journal_path}: no policy episodes to replay")
+        checkpoint_tasks, checkpoint_path = sorted(replayed), f"replay of {journal_path}"
     if opts.checkpoint:
         from rvt2cli.train.checkpoint import load_policy
 
         _, ckpt = load_policy(opts.checkpoint)  # refuses missing, foreign or damaged checkpoints before any work
         checkpoint_tasks, checkpoint_path = ckpt.tasks, str(ckpt.path)
     demos = _demo_seeds(opts.demos) if opts.demos else {}
-    jobs = plan_jobs(opts, checkpoint_tasks, demos)
+    jobs = plan_jobs(opts, checkpoint_tasks, demos, replayed)
     untrained = untrained_tasks(opts, checkpoint_tasks)
     if untrained:
         warnings.warn(f"task(s) {', '.join(untrained)} not in the checkpoint's training set "

@@ -67,6 +67,29 @@ class PolicySource(KeyframeSource):
         return Keyframe.from_pose([*position, *quaternion], seen.gripper_open, seen.ignore_collisions)
 
 
+class ReplaySource(KeyframeSource):
+    """The keyframes a policy predicted in a recorded evaluation (its journal's records), in order,
+    whatever the observation: what today's executor makes of the same predictions, without the model.
+    Where the recorded run could not reach a keyframe it asked the policy again; where the replay
+    reaches it, those re-predictions are skipped."""
+
+    def __init__(self, records: list[dict]):
+        self.records = {(r["task"], r["seed"]): r["steps"] for r in records if r["source"] == "policy"}
+
+    def reset(self, task: Task, seed: int, instruction: str) -> None:
+        self.steps, self.cursor = self.records[(task.name, seed)], 0
+
+    def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry: int = 0):
+        if retry == 0:  # the last keyframe was reached: the recorded re-predictions of it are moot
+            while self.cursor < len(self.steps) and self.steps[self.cursor]["retry"] > 0:
+                self.cursor += 1
+        if self.cursor >= len(self.steps):
+            return None
+        step = self.steps[self.cursor]
+        self.cursor += 1
+        return Keyframe.from_pose(step["target"], step["gripper_open"], step["ignore_collisions"])
+
+
 class OracleSource(KeyframeSource):
     """Ground-truth keyframes, whatever the observation: those of a recorded demo of this seed if one
     was given, else those of the scripted expert run on the same seed (without rendering). An
@@ -85,7 +108,7 @@ class OracleSource(KeyframeSource):
         names = frames[0].state["joint_names"]
         arm_velocities = facts.arm(np.array([f.state["joint_velocities"] for f in frames]), names)
         return label_keyframes([f.gripper_command for f in frames], arm_velocities, [f.contacts for f in frames],
-                               [f.state["tcp_pose"] for f in frames], self.params)
+                               [f.state["tcp_pose"] for f in frames], self.params, [f.near for f in frames])
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
         self.queue = self.keyframes(task, seed)  # runs the expert, which resets the scene itself

@@ -6,7 +6,8 @@ import numpy as np
 
 from rvt2cli.data import Episode, read_episode, write_keyframes
 from rvt2cli.data.keyframes import Keyframe, KeyframeAnnotation, Sample
-from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes, ignore_collisions, next_keyframe_index, observation_starts
+from rvt2cli.keyframes.rule import (KeyframeParams, find_keyframes, ignore_collisions, merge_refinements, next_keyframe_index,
+                                    observation_starts)
 
 
 @dataclass
@@ -16,12 +17,14 @@ class Annotation:
 
 
 def label_keyframes(gripper_command, arm_velocities, contacts, tcp_pose,
-                    params: KeyframeParams = KeyframeParams()) -> list[Keyframe]:
+                    params: KeyframeParams = KeyframeParams(), near=None) -> list[Keyframe]:
     """A dense trajectory's keyframes: where the rule finds them, with the TCP pose, gripper state and
-    collision flag there. `arm_velocities` [T, J] are the arm joints' only (not the fingers')."""
+    collision flag there. `arm_velocities` [T, J] are the arm joints' only (not the fingers'); `near`
+    [T] the bodies near the robot per frame, where recorded."""
     gripper_command = np.asarray(gripper_command)
-    events = find_keyframes(gripper_command > 0, arm_velocities, params)
-    flags = ignore_collisions(contacts, events)
+    events = merge_refinements(find_keyframes(gripper_command > 0, arm_velocities, params),
+                               np.asarray(tcp_pose)[:, :3], params.merge_m)
+    flags = ignore_collisions(contacts, events, near)
     return [Keyframe.from_pose(tcp_pose[e.frame], gripper_command[e.frame] > 0, flag, e.frame, e.reasons)
             for e, flag in zip(events, flags)]
 
@@ -29,7 +32,7 @@ def label_keyframes(gripper_command, arm_velocities, contacts, tcp_pose,
 def annotate(ep: Episode, params: KeyframeParams = KeyframeParams()) -> Annotation:
     robot = ep.robot
     arm_velocities = ep.meta.robot.arm(robot.joint_velocities, robot.joint_names, str(ep.path))
-    keyframes = label_keyframes(robot.gripper_command, arm_velocities, robot.contacts, robot.tcp_pose, params)
+    keyframes = label_keyframes(robot.gripper_command, arm_velocities, robot.contacts, robot.tcp_pose, params, robot.near)
     have_obs = set(ep.obs_frames)
     starts = observation_starts(ep.num_frames, keyframes, params.obs_every)
     samples = tuple(Sample(f, next_keyframe_index(f, keyframes)) for f in starts if f in have_obs)

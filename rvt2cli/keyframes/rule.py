@@ -16,7 +16,8 @@ stretch slower than `pause_velocity` (0.05) that never gets slower than `stop_ve
 which the arm moves on, is a keyframe at its slowest frame. (A brief slow-down while pushing against
 a contact, around 0.1 rad/s, is not.) A rest keyframe also needs the gripper command unchanged over the surrounding
 window (two frames before, one after), is never the second-to-last frame, and comes more than
-`stop_buffer` frames after the previous rest keyframe (debounce).
+`stop_buffer` frames after the previous rest keyframe (debounce), and no more than `stop_buffer` frames
+before a gripper or last keyframe (that one stands for it).
 """
 
 from dataclasses import asdict, dataclass
@@ -30,6 +31,7 @@ class KeyframeParams:
     pause_velocity: float = 0.05  # rad/s: a stretch slower than this, between two motions, is a pause
     stop_buffer: int = 4         # frames a rest keyframe blocks the next one
     obs_every: int = 10          # an observation start every this many frames, besides the keyframes
+    merge_m: float = 0.0         # > 0: a rest keyframe that the next rest keyframe corrects by less than this is dropped
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -95,7 +97,28 @@ def find_keyframes(gripper_open: np.ndarray, arm_velocities: np.ndarray,
             keyframes.append(KeyframeEvent(i, tuple(reasons)))
     if len(keyframes) > 1 and keyframes[-2].frame == keyframes[-1].frame - 1:
         del keyframes[-2]
-    return keyframes
+    # An arrival a few frames before the gripper acts or the episode ends is the same pose: the later
+    # keyframe stands for it (else the motion into the grasp, or the insertion, would be split in two, and
+    # its collision flag would depend on where this demo happened to stop)
+    return [k for k, following in zip(keyframes, keyframes[1:] + [None])
+            if not (k.reasons == ("stopped",) and following is not None and following.frame - k.frame <= params.stop_buffer
+                    and {"gripper", "last"} & set(following.reasons))]
+
+
+def merge_refinements(keyframes: list[KeyframeEvent], tcp_positions: np.ndarray, merge_m: float) -> list[KeyframeEvent]:
+    """Drop each rest keyframe that the following rest keyframe (same gripper state: nothing happened
+    between them) moves by less than `merge_m`: a scripted expert's re-aiming in small steps (25, 10,
+    3, 1 mm before an insertion) becomes one keyframe, its last, so that the observation before an
+    insertion has one next keyframe, not a choice between another correction and the insertion."""
+    if merge_m <= 0:
+        return keyframes
+    kept = []
+    for k, following in zip(keyframes, keyframes[1:] + [None]):
+        refined = (following is not None and k.reasons == ("stopped",) and following.reasons == ("stopped",)
+                   and np.linalg.norm(tcp_positions[following.frame] - tcp_positions[k.frame]) < merge_m)
+        if not refined:
+            kept.append(k)
+    return kept
 
 
 def observation_starts(num_frames: int, keyframes: list[KeyframeEvent], obs_every: int) -> list[int]:
@@ -116,21 +139,29 @@ def next_keyframe_index(frame: int, keyframes: list[KeyframeEvent]) -> int:
     raise ValueError(f"no keyframe after frame {frame}")
 
 
-def ignore_collisions(contacts: list[list[str]], keyframes: list[KeyframeEvent]) -> list[bool]:
-    """Per keyframe: did the expert's motion into it make new contact with the scene?
+def ignore_collisions(contacts: list[list[str]], keyframes: list[KeyframeEvent],
+                      near: list[list[str]] | None = None) -> list[bool]:
+    """Per keyframe: may the motion into it touch the scene (RLBench's "ignore collisions")?
 
     The motion into keyframe k spans the frames after the previous keyframe (frame 0 for the first)
-    up to k. If the robot, or an object it holds, touches a scene body during that motion that it
-    was not already touching as the motion began (its first two frames: an object grasped at the
-    previous keyframe becomes "held" one frame later, still resting on the table), a
-    collision-avoiding planner would have refused the motion, so the executor must plan it with
-    collisions ignored (as RLBench's flag means).
+    up to k. It ignores collisions when
+      - the robot, or an object it holds, touches a scene body during the motion that it was not
+        already touching as the motion began (its first two frames: an object grasped at the previous
+        keyframe becomes "held" one frame later, still resting on the table), or
+      - the motion ends near a body (within `rvt2cli.record.scene.NEAR_M`, the planner's collision
+        radius; `near` per frame) that it was not near as it began.
+    Either way a collision-avoiding planner would have refused the motion. The second clause makes the
+    flag mean the same thing in every demo: an insertion into a close fit (a charger's 0.5 mm) or a
+    grasp ends within millimetres of the fit's walls or the object, whether or not this demo's motion
+    happened to brush them. Episodes recorded without `near` are labelled by contacts alone.
     """
     flags = []
     start = 0
     for k in keyframes:
-        touching_at_start = set(contacts[start]) | set(contacts[min(start + 1, k.frame)])
+        second = min(start + 1, k.frame)
+        touching_at_start = set(contacts[start]) | set(contacts[second])
         new = set().union(*(set(c) for c in contacts[start + 1:k.frame + 1])) - touching_at_start
-        flags.append(bool(new))
+        arrives_near = near is not None and bool(set(near[k.frame]) - set(near[start]) - set(near[second]))
+        flags.append(bool(new) or arrives_near)
         start = k.frame
     return flags

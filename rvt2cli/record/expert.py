@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import gymnasium as gym
 import numpy as np
 
-from rvt2cli.record.scene import robot_contacts, robot_state, sim_state
+from rvt2cli.record.scene import robot_contacts, robot_proximity, robot_state, sim_state
 from rvt2cli.runtime import seed_everything
 
 
@@ -25,6 +25,7 @@ class Frame:
     contacts: list[str]
     gripper_command: float    # command in effect: the last action's gripper value (+1 open at the start)
     action: list[float] | None = None  # the action applied at this frame; None at the last frame
+    near: list[str] = field(default_factory=list)  # scene bodies within 5 mm (robot_proximity)
 
 
 @dataclass
@@ -45,7 +46,8 @@ class RecordingWrapper(gym.Wrapper):
 
     def _record(self, gripper_command: float) -> None:
         self.frames.append(Frame(state=robot_state(self.env), sim=sim_state(self.env),
-                                 contacts=robot_contacts(self.env), gripper_command=gripper_command))
+                                 contacts=robot_contacts(self.env), gripper_command=gripper_command,
+                                 near=robot_proximity(self.env)))
 
     def reset(self, **kwargs):
         out = self.env.reset(**kwargs)

@@ -76,7 +76,7 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
             writer.write_frame(t, joint_names=frame.state["joint_names"], joint_positions=frame.state["joint_positions"],
                                joint_velocities=frame.state["joint_velocities"], gripper_width=frame.state["gripper_width"],
                                gripper_command=frame.gripper_command, action=frame.action, contacts=frame.contacts,
-                               tcp_pose=frame.state["tcp_pose"], sim_state=frame.sim)
+                               tcp_pose=frame.state["tcp_pose"], sim_state=frame.sim, near=frame.near)
         gripper_open = [f.gripper_command > 0 for f in run.frames]
         arm_velocities = robot.arm(np.array([f.state["joint_velocities"] for f in run.frames]), run.frames[0].state["joint_names"])
         for t in observation_frames(len(run.frames), gripper_open, arm_velocities, options.obs_every):

@@ -18,6 +18,7 @@ from rvt2cli.tasks import Task
 FINGER_LINKS = ("panda_leftfinger", "panda_rightfinger")
 CONTACT_IMPULSE = 1e-6  # N*s: contacts below this carry no force
 MIN_HELD_WIDTH = 0.005  # m: fingers closer than this hold nothing (a closed gripper pushing with both tips)
+NEAR_M = 0.005  # m: a body this close to the robot is "near" it (the motion planner's collision radius)
 
 
 def make_env(task: Task, cameras=None, image_size: int | None = None):
@@ -122,6 +123,19 @@ def robot_contacts(env) -> list[str]:
     return sorted({_body_name(n) for n in touched})
 
 
+def robot_proximity(env, margin: float = NEAR_M) -> list[str]:
+    """Scene bodies within `margin` of the robot or of an object it holds, touching ones included.
+    PhysX reports contact points, with their separation, for shapes closer than its contact offset
+    (2 cm in ManiSkill scenes), so anything nearer than that is found whether or not it touches."""
+    grip = {link.name for link in env.unwrapped.agent.robot.get_links()} | _held(env, _contact_pairs(env))
+    near = set()
+    for contact in env.unwrapped.scene.get_contacts():
+        a, b = contact.bodies[0].entity.name, contact.bodies[1].entity.name
+        if (a in grip) != (b in grip) and contact.points and min(p.separation for p in contact.points) <= margin:
+            near.add(_body_name(b if a in grip else a))
+    return sorted(near)
+
+
 def sim_state(env) -> dict:
     state = env.unwrapped.get_state_dict()
     return {group: {name: t[0].cpu().numpy().astype(np.float32).tolist() for name, t in items.items()}
@@ -172,5 +186,5 @@ def segmentation_ids(env, body_names: set[str], include_robot: bool) -> np.ndarr
     from mani_skill.utils.structs import Actor, Link
 
     ids = [seg_id for seg_id, obj in env.unwrapped.segmentation_id_map.items()
-           if (include_robot and isinstance(obj, Link)) or (isinstance(obj, Actor) and obj.name in body_names)]
+           if (include_robot and isinstance(obj, Link)) or (isinstance(obj, Actor) and _body_name(obj.name) in body_names)]
     return np.asarray(sorted(ids), dtype=np.int64)

@@ -1,0 +1,61 @@
+"""Why an episode failed: one reason per failed episode, read from its journal record.
+
+The reasons, in the order they are tested (the first that applies names the failure):
+- `error`: the simulator raised.
+- `unreachable_no_ik`, `unreachable_no_path`: the source's keyframes could not be reached, re-prediction
+  after re-prediction (`Reach.why`): no arm pose within the executor's slack, or no plan to one.
+- `grasp_lost`: an object was held after some keyframe and is no longer held, the gripper still closed.
+For insertion tasks (`Task.insertion`), where the point is the last centimetre:
+- `no_insertion_attempt`: no keyframe moved a held object with collisions ignored, and none brought it
+  near the goal either (`NEAR_GOAL_MM`).
+- `collision_flag_contrary`: a held object was brought near the goal, but only by keyframes that avoid
+  collisions, where every demo's insertion ignores them (`rvt2cli.keyframes.rule`).
+- `insertion_short`: an insertion was attempted and ended `gap_mm` short of success (the record keeps
+  the smallest gap any keyframe reached).
+For every task:
+- `budget_spent`: the keyframe or control-step budget ran out.
+- `source_stopped`: the source had no keyframe left (the oracle at the end of its demo).
+"""
+
+REASONS = ("error", "unreachable_no_ik", "unreachable_no_path", "grasp_lost", "no_insertion_attempt",
+           "collision_flag_contrary", "insertion_short", "budget_spent", "source_stopped")
+NEAR_GOAL_MM = 30.0  # a held object this close to success counts as brought to the goal
+
+
+def _reached(record: dict) -> list[dict]:
+    return [s for s in record["steps"] if s["reached"]]
+
+
+def failure_reason(record: dict, insertion: bool) -> str | None:
+    """The reason a recorded episode failed (None if it succeeded)."""
+    if record["success"]:
+        return None
+    if record["failure"] == "error":
+        return "error"
+    steps = record["steps"]
+    if record["failure"] == "planning_failure":
+        unreached = [s for s in steps if not s["reached"]]
+        return f"unreachable_{unreached[-1].get('why') or 'no_ik'}" if unreached else "unreachable_no_ik"
+    reached = _reached(record)
+    ever_held = any(s.get("held") for s in reached)
+    if ever_held and reached and not reached[-1].get("held") and not reached[-1]["gripper_open"]:
+        return "grasp_lost"
+    if insertion:
+        holding = [s for s in reached if s.get("held") and not s["gripper_open"]]
+        attempts = [s for s in holding if s["ignore_collisions"]]
+        near_goal = [s for s in holding if s.get("gap_mm") is not None and s["gap_mm"] <= NEAR_GOAL_MM]
+        if not attempts:
+            return "collision_flag_contrary" if near_goal else "no_insertion_attempt"
+        return "insertion_short"
+    return "budget_spent" if record["failure"] == "budget_exhausted" else "source_stopped"
+
+
+def insertion_gap_mm(record: dict) -> float | None:
+    """The smallest gap to success a held object reached in this episode (mm), if the task measures one."""
+    gaps = [s["gap_mm"] for s in _reached(record) if s.get("held") and s.get("gap_mm") is not None]
+    return min(gaps) if gaps else None
+
+
+def count_reasons(records: list[dict], insertion: bool) -> dict[str, int]:
+    reasons = [failure_reason(r, insertion) for r in records]
+    return {reason: reasons.count(reason) for reason in REASONS if reason in reasons}
