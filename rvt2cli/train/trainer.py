@@ -81,7 +81,7 @@ def check_run_folder(run_dir: Path, resume: bool) -> None:
     if not resume and has_checkpoint:
         raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
     if resume and not has_checkpoint:
-        if not run_dir.exists():
+        if not run_dir.is_dir():
             raise UserError(f"{run_dir}: no such run folder to resume; start the run without --resume")
         raise UserError(f"{run_dir}: the run has no checkpoint yet (it stopped before its first save); "
                         "start it again without --resume")
