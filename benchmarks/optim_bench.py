@@ -27,7 +27,8 @@ from rvt2cli.model.config import get_config
 from rvt2cli.model.loss import policy_loss
 from rvt2cli.model.policy import RVT2Policy
 from rvt2cli.train.lamb8bit import BLOCK_SIZE, Lamb8bit, optimizer_state_bytes
-from rvt2cli.train.optim import Lamb, warmup_cosine
+from rvt2cli.train.lamb import Lamb
+from rvt2cli.train.optim import warmup_cosine
 
 WEIGHT_DECAY = 1e-4
 

@@ -11,6 +11,10 @@ truncated file or a half-filled folder under the real name.
 
 Errors of the file system (disk full, permission denied, a parent that is a file) become one-line
 `UserError`s naming the output.
+
+Every output ends with the permissions a plain `open()` would give a new file (0666 less the umask),
+also where the writer made its temporary file private (safetensors writes 0600):
+a policy folder copied to a robot must be readable by the robot's user.
 """
 
 import contextlib
@@ -18,6 +22,8 @@ import ctypes
 import errno
 import os
 import shutil
+import stat
+import threading
 from pathlib import Path
 
 from rvt2cli.errors import UserError
@@ -74,6 +80,42 @@ def check_folder_can_be_made(path: str | os.PathLike, what: str = "output folder
     return path
 
 
+_umask_lock = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it where Linux tells it (/proc), else by a locked round trip."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _umask_lock:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def give_plain_permissions(path: Path) -> None:
+    """Set `path`'s permissions to what `open()` would create under the umask (executable bits kept
+    where the writer set them)."""
+    mask = current_umask()
+    mode = 0o666 & ~mask
+    if os.stat(path).st_mode & stat.S_IXUSR:
+        mode |= 0o111 & ~mask
+    os.chmod(path, mode)
+
+
+def _give_folder_plain_permissions(folder: Path) -> None:
+    for root, _, files in os.walk(folder):
+        for name in files:
+            path = Path(root) / name
+            if not path.is_symlink():
+                give_plain_permissions(path)
+
+
 class AtomicFile:
     """A temporary file that becomes `path` on `commit()` and disappears on `discard()` (for writers
     that stream into a file over many calls, like the episode writer)."""
@@ -86,6 +128,7 @@ class AtomicFile:
         try:
             with open(self.tmp, "rb+") as f:
                 os.fsync(f.fileno())
+            give_plain_permissions(self.tmp)
             os.replace(self.tmp, self.path)
         except OSError as e:
             self.discard()
@@ -172,6 +215,7 @@ def atomic_folder(path: str | os.PathLike, replace: bool = False):
     try:
         tmp.mkdir()
         yield tmp
+        _give_folder_plain_permissions(tmp)
         _swap_into_place(tmp, final)
     except OSError as e:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -1,35 +1,90 @@
 #!/usr/bin/env bash
-# The commands behind docs/RESULTS.md, in order. Steps 1-3 and 5 run on the CPU machine (make setup
-# first); step 4 runs where a GPU is (see below). DATA defaults to data/ in the repository (git-ignored).
+# docs/RESULTS.md (v2) on a GPU workstation with rvt2 and its simulator installed (`make setup`), on
+# GPUS GPUs: record 8 tasks x 25 demos and 5 held-out demos per task (seeds 30000+), extract keyframes,
+# train the paper configuration (torchrun when GPUS > 1; the global batch BATCH is kept by dividing it
+# among the GPUs), evaluate closed-loop on seeds 10000-10049 and score the held-out demos offline. Every
+# phase is timed into $DATA/phases.tsv.
+#
+#   bash scripts/reproduce_results.sh                      # every phase, one GPU
+#   GPUS=2 bash scripts/reproduce_results.sh               # training on two GPUs (batch 96 each)
+#   bash scripts/reproduce_results.sh train eval offline   # some phases, in this order
+#   RUN=demos10 STEPS=550 TRAIN_ARGS="--compile --episodes-per-task 10" bash scripts/reproduce_results.sh train eval offline
+#
+# Measured on one NVIDIA H200 (16 CPU cores, 14 simulator processes): record 265 s and keyframes 35 s,
+# held-out demos 223 s; the training's compiled loop runs at 723 samples/s at batch 192
+# (docs/BENCHMARKS.md, "Training loop"); two H200s train 1.94x as fast as one ("Several GPUs").
+# Settings (environment): GPUS, BATCH (global), STEPS, SEED, TRAIN_ARGS, RUN, WORKERS (simulator
+# processes), EPISODES (demos per task), EVAL_EPISODES, HELDOUT_EPISODES, TASKS, DEVICE (for eval),
+# DATA (the output folder, default data/results; data/ is git-ignored), RVT2 (the command).
 set -euo pipefail
-DATA=${DATA:-data}
-TASKS="insert_peg plug_charger place_sphere lift_peg_upright stack_cube pick_cube push_cube pull_cube"
-step=${1:-all}
+GPUS=${GPUS:-1}
+BATCH=${BATCH:-192}
+STEPS=${STEPS:-1100}
+SEED=${SEED:-0}
+TRAIN_ARGS=${TRAIN_ARGS:---compile}
+RUN=${RUN:-demos25_seed$SEED}
+WORKERS=${WORKERS:-$(( $(nproc) > 3 ? $(nproc) - 2 : 1 ))}   # leave two cores to the GPU's feeder
+EPISODES=${EPISODES:-25}
+EVAL_EPISODES=${EVAL_EPISODES:-50}
+HELDOUT_EPISODES=${HELDOUT_EPISODES:-5}
+TASKS=${TASKS:-"insert_peg plug_charger place_sphere lift_peg_upright stack_cube pick_cube push_cube pull_cube"}
+DATA=${DATA:-data/results}
+DEVICE=${DEVICE:-cuda}
+RVT2=${RVT2:-rvt2}
+if (( GPUS < 1 || BATCH % GPUS != 0 )); then
+  echo "GPUS=$GPUS: give a number of GPUs that divides the global batch BATCH=$BATCH" >&2
+  exit 2
+fi
+if ! command -v "$RVT2" > /dev/null; then
+  echo "$RVT2: not found; run \`make setup\` and \`source .venv/bin/activate\` (or set RVT2)" >&2
+  exit 2
+fi
+[ $# -gt 0 ] || set -- record heldout train eval offline
+for step in "$@"; do
+  case $step in record|heldout|train|eval|offline) ;; *) echo "usage: $0 [record|heldout|train|eval|offline]..." >&2; exit 2 ;; esac
+done
+mkdir -p "$DATA"
 
-if [[ $step == all || $step == record ]]; then          # 1. 25 successful expert demos per task (~10 min, 2 cores)
-  for t in $TASKS; do rvt2 record --task "$t" --episodes 25 --workers 2 --out "$DATA/demos25"; done
-fi
-if [[ $step == all || $step == keyframes ]]; then       # 2. keyframes and training samples (~1 min)
-  rvt2 extract-keyframes "$DATA/demos25"
-fi
-if [[ $step == all || $step == pack ]]; then            # 3. one file with the samples the GPU trains on (370 MB)
-  rvt2 pack-samples "$DATA/demos25" --keyframe-starts-only --out "$DATA/samples25.safetensors"
-fi
-if [[ $step == train ]]; then                           # 4. on a GPU machine with rvt2 installed (H200: 10.4 + 5.2 + 21 min)
-  common=(--data "$DATA/samples25.safetensors" --config rvt2 --compile --render-backend torch --val-episodes 0)
-  rvt2 train "${common[@]}" --steps 8000 --out "$DATA/runs/demos25"
-  rvt2 train "${common[@]}" --steps 4000 --episodes-per-task 10 --out "$DATA/runs/demos10"
-  rvt2 train "${common[@]}" --steps 16000 --out "$DATA/runs/demos25_16k"    # 21 min
-  # Our lent GPU machine has no rvt2 install and a 64 MiB limit each way: scripts/gpu_train.sh ran these
-  # same two commands there, and scripts/gpu_checkpoint.py carried the weights back as float16.
-fi
-if [[ $step == all || $step == eval ]]; then            # 5. closed loop on seeds 10000-10024, 2 cores
-  rvt2 eval --checkpoint "$DATA/runs/demos25" --episodes 25 --workers 2 --oracle --out "$DATA/evals/demos25"
-  rvt2 eval --checkpoint "$DATA/runs/demos10" --episodes 25 --workers 2 --out "$DATA/evals/demos10"
-  rvt2 eval --checkpoint "$DATA/runs/demos25_16k" --episodes 25 --workers 2 --out "$DATA/evals/demos25_16k"
-  python -m benchmarks.record_bench --tasks "${TASKS// /,}" --first-seed 10000 --seeds 25 --episodes 0 \
-    --json "$DATA/expert_eval_seeds.json"
-  python -m benchmarks.results_table --policy "25 demos=$DATA/evals/demos25" --policy "10 demos=$DATA/evals/demos10" \
-    --policy "25 demos, 16k steps=$DATA/evals/demos25_16k" --oracle "$DATA/evals/demos25" \
-    --expert "$DATA/expert_eval_seeds.json" --chart docs/results.png --json benchmarks/results/results.json
-fi
+phase() {  # NAME COMMAND...: run COMMAND, then append "NAME<TAB>seconds" to $DATA/phases.tsv
+  local name=$1 start=$SECONDS
+  shift
+  echo "== $name"
+  "$@"
+  printf '%s\t%d\n' "$name" $((SECONDS - start)) | tee -a "$DATA/phases.tsv"
+}
+
+record() {  # OUT FIRST_SEED EPISODES
+  for task in $TASKS; do
+    $RVT2 record --task "$task" --episodes "$3" --seed "$2" --workers "$WORKERS" --out "$1" --no-progress
+  done
+  $RVT2 extract-keyframes "$1"
+}
+
+train() {
+  local launch=($RVT2)
+  if (( GPUS > 1 )); then launch=(torchrun --standalone --nproc-per-node "$GPUS" -m rvt2cli); fi
+  # shellcheck disable=SC2086  # TRAIN_ARGS is a list of options
+  "${launch[@]}" train --data "$DATA/demos" --out "$DATA/runs/$RUN" --config rvt2 --seed "$SEED" \
+    --batch-size $((BATCH / GPUS)) --steps "$STEPS" --warmup $((STEPS / 10)) --val-episodes 1 \
+    --val-every $((STEPS / 4)) --save-every $((STEPS / 4)) --no-progress $TRAIN_ARGS
+}
+
+evaluate() {
+  $RVT2 eval --checkpoint "$DATA/runs/$RUN" --episodes "$EVAL_EPISODES" --seed 10000 --workers "$WORKERS" \
+    --device "$DEVICE" --out "$DATA/evals/$RUN" --no-progress
+}
+
+offline() {
+  $RVT2 eval --checkpoint "$DATA/runs/$RUN" --offline "$DATA/heldout" --device "$DEVICE" --out "$DATA/offline/$RUN" --no-progress
+}
+
+for step in "$@"; do
+  case $step in
+    record) phase record record "$DATA/demos" 0 "$EPISODES" ;;
+    heldout) phase heldout record "$DATA/heldout" 30000 "$HELDOUT_EPISODES" ;;
+    train) phase "train_$RUN" train ;;
+    eval) phase "eval_$RUN" evaluate ;;
+    offline) phase "offline_$RUN" offline ;;
+  esac
+done
+echo "reports: $DATA/evals/$RUN/eval.md, $DATA/offline/$RUN/offline.md; phase times: $DATA/phases.tsv"

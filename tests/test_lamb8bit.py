@@ -9,7 +9,7 @@ import torch
 
 from rvt2cli.train.lamb8bit import (BLOCK_SIZE, BlockQuantiser, Lamb8bit, NearestCode, optimizer_state_bytes,
                                     signed_dynamic_map, unsigned_dynamic_map)
-from rvt2cli.train.optim import Lamb
+from rvt2cli.train.lamb import Lamb
 
 
 @pytest.fixture(autouse=True)

@@ -14,7 +14,7 @@ from rvt2cli.model.policy import Observation, RVT2Policy
 from rvt2cli.model.rotation import angle_between, bins_to_quaternion, quaternion_to_bins
 from rvt2cli.render.cameras import cube_rig, zoom_rig
 from rvt2cli.render.channels import NUM_CHANNELS
-from rvt2cli.train.optim import Lamb
+from rvt2cli.train.lamb import Lamb
 
 
 def observation(cfg, batch=2, points=2000, seed=0):

@@ -70,6 +70,35 @@ def test_training_into_an_existing_run_needs_resume(tiny_checkpoint, tiny_datase
     assert_one_line_error(r, "already holds a run", "--resume")
 
 
+def _tree(folder) -> dict:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_run_stopped_before_its_first_checkpoint_is_started_again_not_resumed(tiny_dataset, tmp_path, cli):
+    run = tmp_path / "run"
+    train(TrainOptions(data=[str(tiny_dataset)], out=str(run), steps=1, **TINY_TRAIN), say=lambda *_: None)
+    # what a run killed before its first save leaves: its logs and run.json, no checkpoint
+    import shutil
+
+    shutil.rmtree(run / "checkpoints")
+    (run / "last").unlink()
+    before = _tree(run)
+    assert_one_line_error(cli("train", "--out", run, "--resume"), str(run), "no checkpoint yet", "without --resume")
+    assert _tree(run) == before
+    again = train(TrainOptions(data=[str(tiny_dataset)], out=str(run), steps=1, **TINY_TRAIN), say=lambda *_: None)
+    assert again.steps == 1 and (run / "last").is_file()
+
+
+def test_training_refuses_a_folder_with_files_of_its_own(tiny_dataset, tmp_path, cli):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    for resume in ([], ["--resume"]):
+        r = cli("train", "--data", tiny_dataset, "--out", mine, "--config", "small", "--steps", "1", *resume)
+        assert_one_line_error(r, str(mine), "not an rvt2 run folder", "notes.txt")
+    assert _tree(mine) == {"notes.txt": b"mine"}
+
+
 def test_data_without_keyframes_is_refused(tmp_path, cli):
     from rvt2cli.record.recorder import RecordOptions, record
 

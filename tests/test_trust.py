@@ -189,3 +189,36 @@ def test_a_training_state_that_would_run_code_is_refused(tiny_checkpoint, tiny_d
     r = cli("train", "--out", run, "--resume")
     assert_one_line_error(r, "training_state.pt", "not a training state rvt2 can load safely")
     assert not marker.exists()
+
+
+# --- files others can read -------------------------------------------------------------------------------------
+
+def _modes(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_mode & 0o777 for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.mark.sim
+def test_outputs_have_the_permissions_a_plain_open_gives(tiny_checkpoint, tiny_dataset, tmp_path):
+    """safetensors writes its files 0600; every output still ends as readable as the files beside it
+    (a policy folder copied to a robot is run by another user)."""
+    from rvt2cli.atomic import current_umask
+    from rvt2cli.export.exporter import export_policy
+    from rvt2cli.train.sample_cache import pack_sample_cache
+
+    run_dir, _ = tiny_checkpoint
+    checkpoint = _modes(run_dir / (run_dir / "last").read_text().strip())
+    assert set(checkpoint.values()) == {0o666 & ~current_umask()}, checkpoint
+    assert {"model.safetensors", "instructions.safetensors"} <= set(checkpoint)
+
+    before = os.umask(0o027)  # a umask other than the usual 022: the modes follow it
+    try:
+        assert current_umask() == 0o027
+        cache = tmp_path / "samples.safetensors"
+        pack_sample_cache([str(tiny_dataset)], cache, progress=False)
+        export_policy(str(run_dir), "torchscript", str(tmp_path / "policy"), max_points=5000)
+    finally:
+        os.umask(before)
+    assert cache.stat().st_mode & 0o777 == 0o640
+    policy = _modes(tmp_path / "policy")
+    assert set(policy.values()) == {0o640}, policy
+    assert "instructions.safetensors" in policy

@@ -2,7 +2,7 @@
 
 RVT-2 (Goyal et al., 2024) trains with 8-bit LAMB: LAMB (You et al., 2020) whose Adam moments are kept
 in 8 bits as in Dettmers et al., "8-bit Optimizers via Block-wise Quantization" (ICLR 2022). The
-arithmetic is that of `rvt2cli.train.optim.Lamb`; only the storage of the moments differs:
+arithmetic is that of `rvt2cli.train.lamb.Lamb`; only the storage of the moments differs:
 
     m = beta1 * m + (1 - beta1) * g                         first moment (signed)
     v = beta2 * v + (1 - beta2) * g^2                       second moment (non-negative)
@@ -61,7 +61,7 @@ import torch
 from torch import Tensor
 from torch.optim import Optimizer
 
-from rvt2cli.train.optim import Lamb
+from rvt2cli.train.lamb import Lamb
 
 BLOCK_SIZE = 64
 MIN_8BIT_SIZE = 4096

@@ -62,8 +62,34 @@ def pick_device(name: str) -> torch.device:
 
 # --- options -----------------------------------------------------------------------------------------
 
+RUN_FILES = {"last", "run.json", "train.csv", "validation.csv", "tb", "checkpoints"}
+
+
+def _own_files(run_dir: Path) -> list[str]:
+    """The names in `run_dir` that `rvt2 train` did not write (its hidden temporary files aside)."""
+    return sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_FILES and not
+                  (p.name.startswith(".") and ".tmp-" in p.name))
+
+
+def check_run_folder(run_dir: Path, resume: bool) -> None:
+    """A fresh run goes into a new or empty folder, or one of a run stopped before its first checkpoint;
+    a resumed run needs a checkpoint. One line otherwise; nothing of the user's is written over."""
+    has_checkpoint = (run_dir / "last").exists()
+    if run_dir.is_dir() and not has_checkpoint and _own_files(run_dir):
+        raise UserError(f"{run_dir}: exists and is not an rvt2 run folder (it holds {_own_files(run_dir)[0]}); "
+                        "train into a new or empty --out")
+    if not resume and has_checkpoint:
+        raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
+    if resume and not has_checkpoint:
+        if not run_dir.is_dir():
+            raise UserError(f"{run_dir}: no such run folder to resume; start the run without --resume")
+        raise UserError(f"{run_dir}: the run has no checkpoint yet (it stopped before its first save); "
+                        "start it again without --resume")
+
+
 def stored_options(run_dir: Path) -> TrainOptions | None:
     """The options a run was started with (from its last checkpoint), or None for a run without them."""
+    check_run_folder(run_dir, resume=True)
     options = load_checkpoint(run_dir).info.get("options")
     return TrainOptions.from_json(options) if options else None
 
@@ -71,9 +97,8 @@ def stored_options(run_dir: Path) -> TrainOptions | None:
 def resolve_options(opts: TrainOptions) -> tuple[TrainOptions, Checkpoint | None]:
     """A fresh run needs a fresh folder; a resumed run must keep its run-defining options."""
     run_dir = Path(opts.out)
+    check_run_folder(run_dir, opts.resume)
     if not opts.resume:
-        if (run_dir / "last").exists():
-            raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
         return opts, None
     ckpt = load_checkpoint(run_dir)
     stored = stored_options(run_dir)

@@ -1,12 +1,12 @@
-"""Carry a trained checkpoint off the GPU machine in pieces, and put it back together here.
+"""Carry a trained checkpoint off a GPU machine without network access in pieces, and put it back together.
 
-The lent GPU machine returns at most 64 MiB per call, in files of at most 16 MiB. On the GPU machine:
+Such a host returns at most 64 MiB per transfer, in files of at most 16 MiB. On the GPU machine:
 
-    python3 scripts/gpu_checkpoint.py shrink RUN_DIR OUT_DIR     # config + embeddings + fp16 weights in 15 MiB pieces
+    python3 scripts/offline-gpu-host/gpu_checkpoint.py shrink RUN_DIR OUT_DIR     # config + embeddings + fp16 weights in 15 MiB pieces
 
-and here, once every piece has come back into one folder:
+and on the machine that receives them, once every piece has come back into one folder:
 
-    python scripts/gpu_checkpoint.py restore PIECES_DIR RUN_DIR  # a normal run folder that rvt2 eval/export/render read
+    python scripts/offline-gpu-host/gpu_checkpoint.py restore PIECES_DIR RUN_DIR  # a run folder that rvt2 eval/export/render read
 
 The weights travel as float16 (half the size) and are restored to float32; config.json records this.
 Training ran under bf16 autocast, so every matrix product already used weights rounded to 8 significant
@@ -23,8 +23,8 @@ from pathlib import Path
 import torch
 from safetensors.torch import load, load_file, save, save_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from rvt2cli.atomic import atomic_open  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository root
+from rvt2cli.atomic import atomic_folder, atomic_open  # noqa: E402
 from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, WEIGHTS, resolve  # noqa: E402
 
 PIECE = 15 * 2**20
@@ -58,12 +58,11 @@ def restore(pieces_dir: Path, run: Path) -> None:
     if hashlib.sha256(blob).hexdigest() != manifest["sha256"]:
         sys.exit(f"{pieces_dir}: the pieces do not add up to the weights that were sent (sha256 differs)")
     name = f"step_{manifest['step']:07d}"
-    final = run / "checkpoints" / name
-    final.mkdir(parents=True, exist_ok=True)
     weights = {k: (v.float() if v.is_floating_point() else v).contiguous() for k, v in load(blob).items()}
-    save_file(weights, str(final / WEIGHTS))
-    shutil.copy(pieces_dir / CONFIG, final / CONFIG)
-    shutil.copy(pieces_dir / INSTRUCTIONS, final / INSTRUCTIONS)
+    with atomic_folder(run / "checkpoints" / name, replace=True) as final:  # readable by all, as rvt2's own
+        save_file(weights, str(final / WEIGHTS))
+        shutil.copy(pieces_dir / CONFIG, final / CONFIG)
+        shutil.copy(pieces_dir / INSTRUCTIONS, final / INSTRUCTIONS)
     with atomic_open(run / "last", "w") as f:
         f.write(f"checkpoints/{name}\n")
     print(f"{run}: checkpoint {name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights)")

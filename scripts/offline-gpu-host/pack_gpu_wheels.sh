@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Pack what rvt2 needs on the lent GPU machine (Python 3.12, CUDA torch, numpy 2, no network) into
-# .gpu/site.part.* (56 MiB each: a call carries 64 MiB, the working tree included), for scripts/gpu_onebox.sh.
+# Pack what rvt2 needs on a GPU machine without network access (Python 3.12, CUDA torch, numpy 2, nothing
+# else installed) into .gpu/site.part.* (56 MiB each: the host takes 64 MiB per transfer, the working tree
+# included), for gpu_onebox.sh. Run it from a machine with network access, in the repository.
 #
 # The simulator stack (SAPIEN, ManiSkill, mplib with numpy 1.26: mplib 0.1.1 crashes with numpy 2),
 # the MCAP libraries, warp, scipy (the image's scipy wants numpy 2) and IPython (ManiSkill imports it), as
@@ -9,7 +10,7 @@
 # The text encoder (88 MB) stays here: .gpu/embeddings.safetensors carries every task's instructions
 # (scripts/embed_instructions.py, read through RVT2_EMBEDDINGS).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 PY=${PY:-.venv/bin/python}
 WHEELS=(
   mani-skill==3.0.1 sapien==3.0.3 mplib==0.1.1 numpy==1.26.4 toppra==0.6.10 transforms3d==0.4.2 trimesh==5.2.0

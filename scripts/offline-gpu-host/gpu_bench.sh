@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# GPU benchmarks, run on the lent GPU machine (it has python3 with CUDA torch, no network).
+# GPU benchmarks on a GPU machine without network access (python3 with CUDA torch, nothing else).
 #
-# warp-lang and bitsandbytes are not installed there: scripts/pack_gpu_wheels.sh packs them (warp
-# without its examples, bitsandbytes with only its CUDA 13 library) into .whl/site.part.*, which
-# are carried one per call into /tmp/w/ (the machine keeps /tmp while it stays warm), then:
-#   bash scripts/gpu_bench.sh            # unpacks into /tmp/site, runs the CUDA tests and benchmarks
+# warp-lang and the other libraries are not installed there: pack_gpu_wheels.sh packs them into
+# .gpu/site.part.*, which are carried one per transfer into /tmp/w/ (gpu_onebox.sh stash), then:
+#   bash scripts/offline-gpu-host/gpu_bench.sh   # unpacks into /tmp/site, runs the CUDA tests and benchmarks
 # Results land in $OUT (render.json, policy.json, logs).
 set -euo pipefail
+cd "$(dirname "$0")/../.."
 OUT=${OUT:-/tmp/rvt2-bench}
 mkdir -p "$OUT" /tmp/site
 if [ ! -d /tmp/site/warp ]; then

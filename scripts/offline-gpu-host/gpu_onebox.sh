@@ -1,26 +1,29 @@
 #!/usr/bin/env bash
 # The whole experiment on one GPU machine: record 8 tasks x 25 demos, train the paper configuration
 # (on one GPU or, with NPROC=2, on two through torchrun), evaluate closed-loop and offline, with every
-# phase timed. Written for this workplace's lent GPU machine (python3 3.12 with CUDA torch and numpy 2,
-# no network, 64 MiB carried in per call, 10 min per command, /tmp kept while the machine stays warm);
-# on your own GPU workstation run the two commands of README.md ("On a GPU workstation") instead.
+# phase timed. Written for a GPU machine without network access (python3 3.12 with CUDA torch and numpy 2,
+# 64 MiB carried in per transfer, at most 10 minutes per command, /tmp kept between commands while the
+# machine stays up); on a GPU workstation with rvt2 installed use scripts/reproduce_results.sh instead.
 #
-# Here:    bash scripts/pack_gpu_wheels.sh            # -> .gpu/site.part.* (56 MiB each) + site.sha256
-# There, one call per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders):
-#   bash scripts/gpu_onebox.sh stash                  # keep the carried parts (and data/heldout) in /tmp/w
-#   bash scripts/gpu_onebox.sh stash setup record     # unpack, check the GPU renders, record (heldout: 30000+)
-#   bash scripts/gpu_onebox.sh bg main train ddpbench # in the background: train RUN, then the DDP benchmark
-#   bash scripts/gpu_onebox.sh wait main eval offline # wait for it, evaluate on the GPU, score held-out demos
-#   bash scripts/gpu_onebox.sh loopbench              # the training loop against its step (benchmarks/loop_bench.py)
-#   bash scripts/gpu_onebox.sh eval repro             # evaluate RUN, then part of it again: same episodes?
-#   bash scripts/gpu_onebox.sh results                # phase times, logs, reports of RUNS -> $OUT/results.tgz
-#   bash scripts/gpu_onebox.sh weights FIRST COUNT    # float16 weight pieces FIRST.. (and meta.tar with 0) to $OUT
-# Here:    tar -xf meta.tar in the pieces' folder; python scripts/gpu_checkpoint.py restore PIECES_DIR runs/NAME
+# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (56 MiB each) + site.sha256
+# Offline host, one command per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders);
+# K=scripts/offline-gpu-host:
+#   bash $K/gpu_onebox.sh stash                  # keep the carried parts (and data/heldout) in /tmp/w
+#   bash $K/gpu_onebox.sh stash setup record     # unpack, check the GPU renders, record (heldout: 30000+)
+#   bash $K/gpu_onebox.sh bg main train ddpbench # in the background: train RUN, then the DDP benchmark
+#   bash $K/gpu_onebox.sh wait main eval offline # wait for it, evaluate on the GPU, score held-out demos
+#   bash $K/gpu_onebox.sh loopbench              # the training loop against its step (benchmarks/loop_bench.py)
+#   bash $K/gpu_onebox.sh eval repro             # evaluate RUN, then part of it again: same episodes?
+#   bash $K/gpu_onebox.sh results                # phase times, logs, reports of RUNS -> $OUT/results.tgz
+#   bash $K/gpu_onebox.sh weights FIRST COUNT    # float16 weight pieces FIRST.. (and meta.tar with 0) to $OUT
+# Online:  tar -xf meta.tar in the pieces' folder; python $K/gpu_checkpoint.py restore PIECES_DIR runs/NAME
 # Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
 # "--compile --seed 1", "--episodes-per-task 10 --cameras front"), DATA (the demos RUN trains on),
 # OFFLINE_DEMOS (the held-out demos RUN is scored on), EVAL_EPISODES, WORKERS, RUNS (results).
-# scripts/gpu_results_v2.sh holds the exact calls behind docs/RESULTS.md v2.
+# gpu_results_v2.sh, gpu_results_v2_1gpu.sh and gpu_results_v3.sh hold the exact commands behind docs/RESULTS.md.
 set -euo pipefail
+cd "$(dirname "$0")/../.."   # the repository root: every path below is relative to it
+KIT=scripts/offline-gpu-host
 W=${W:-/tmp/w}
 SITE=${SITE:-/tmp/site}
 WORKERS=${WORKERS:-14}
@@ -35,7 +38,7 @@ RUNS=${RUNS:-$RUN}
 HELDOUT=${HELDOUT:-data/heldout}   # held-out demos (recorded here with seeds the training never saw), carried in
 CONFIG=${CONFIG:-rvt2}
 DEVICE=${DEVICE:-cuda}
-WAIT_S=${WAIT_S:-560}   # how long `wait` waits inside one call
+WAIT_S=${WAIT_S:-560}   # how long `wait` waits inside one command
 OUT=${OUT:-/tmp/rvt2-out}
 mkdir -p "$W" "$OUT"
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 RVT2_EMBEDDINGS=$SITE/embeddings.safetensors
@@ -44,7 +47,7 @@ export PYTORCH_CUDA_ALLOC_CONF=${PYTORCH_CUDA_ALLOC_CONF:-expandable_segments:Tr
 export RVT2_VULKAN=${RVT2_VULKAN:-nvidia}   # the point of this machine: say so at once if its GPU cannot render
 RVT2=(python3 -m rvt2cli)
 # run from this source tree: the package finds tasks/ and schemas/ where an install would put them
-# (each call gets a fresh copy of the tree, so every call links them)
+# (each command may get a fresh copy of the tree, so every command links them)
 ln -sfn ../tasks rvt2cli/_tasks && ln -sfn ../schemas rvt2cli/_schemas
 clock() { date +%s; }
 phase() {  # NAME SECONDS: one line per phase in $W/phases.tsv
@@ -70,7 +73,7 @@ while [ $# -gt 0 ]; do
       for f in .gl/*.deb; do dpkg -x "$f" /; done
       ldconfig
     fi
-    # kept in $W for `results` ($OUT is emptied before every call)
+    # kept in $W for `results` ($OUT is emptied before every command)
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$W/gpu.txt"
     "${RVT2[@]}" doctor | tee -a "$W/gpu.txt"
     cp "$W/gpu.txt" "$OUT/"
@@ -163,15 +166,15 @@ while [ $# -gt 0 ]; do
     shift
     rm -rf "$W/bg_$name" "$W/$name.done"
     mkdir -p "$W/bg_$name" && tar -cf - --exclude=./.gpu --exclude=./data . | tar -x -C "$W/bg_$name"
-    command="scripts/gpu_onebox.sh $*"
-    if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script (scripts/gpu_results_v2.sh)
+    command="$KIT/gpu_onebox.sh $*"
+    if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script ($KIT/gpu_results_v2.sh)
     (cd "$W/bg_$name" && setsid nohup bash -c "t=\$(date +%s); bash $command; echo \$? \$(( \$(date +%s) - t )) > $W/$name.done" \
       > "$W/$name.log" 2>&1 < /dev/null &)
     sleep "${START_WAIT:-5}"
     cat "$W/$name.log"
-    break  # the rest of the line ran in the background
+    break  # the rest of the command line runs in the background
     ;;
-  wait)  # wait NAME: until the background phases NAME end (at most WAIT_S seconds in this call)
+  wait)  # wait NAME: until the background phases NAME end (at most WAIT_S seconds in this command)
     name=$1
     shift
     while [ ! -f "$W/$name.done" ] && [ "$SECONDS" -lt "$WAIT_S" ]; do sleep 5; done
@@ -194,7 +197,7 @@ while [ $# -gt 0 ]; do
       --no-progress 2>&1 | tail -12
     phase "offline_$RUN" $(( $(clock) - t ))
     ;;
-  results)  # every small result in one file (a call returns at most 8 files)
+  results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
     files=(phases.tsv ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
@@ -208,10 +211,10 @@ while [ $# -gt 0 ]; do
     cp "$OUT/results.tgz" "$W/" 2>/dev/null || true
     ls -l "$OUT"
     ;;
-  weights)  # weight pieces FIRST..FIRST+COUNT-1 (float16, 15 MiB each; at most 7 per call) and, with 0, the config
+  weights)  # weight pieces FIRST..FIRST+COUNT-1 (float16, 15 MiB each; at most 7 per transfer) and, with 0, the config
     first=$1 count=$2
     shift 2
-    [ -d "$W/export/$RUN" ] || python3 scripts/gpu_checkpoint.py shrink "$W/runs/$RUN" "$W/export/$RUN"
+    [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$W/runs/$RUN" "$W/export/$RUN"
     mkdir -p "$OUT/$RUN"
     for i in $(seq "$first" $((first + count - 1))); do
       piece=$(printf "%s/export/%s/weights.part%03d" "$W" "$RUN" "$i")

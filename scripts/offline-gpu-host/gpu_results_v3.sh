@@ -7,14 +7,15 @@
 # While the first model trains, the simulator cores run the oracle on the same seeds and replay results
 # v2's recorded predictions through today's executor (`rvt2 eval --replay`).
 #
-# On a one-GPU workstation with rvt2 and its simulator installed: `bash scripts/gpu_results_v3.sh all`.
-# On a GPU machine without network access (scripts/pack_gpu_wheels.sh, scripts/gpu_onebox.sh), one
+# On a one-GPU workstation with rvt2 and its simulator installed: `bash scripts/offline-gpu-host/gpu_results_v3.sh all`.
+# On a GPU machine without network access (pack_gpu_wheels.sh, gpu_onebox.sh beside this script), one
 # command per step: `stash` carrying each .gpu/site.part.* piece but the last, then `start` carrying the
 # last piece and .gl, then `collect` until it reports everything (each waits up to 9 minutes).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."   # the repository root
 export WORKERS=${WORKERS:-14}
-onebox=scripts/gpu_onebox.sh
+onebox=scripts/offline-gpu-host/gpu_onebox.sh
+self=scripts/offline-gpu-host/$(basename "$0")
 COMPILE=${COMPILE---compile}          # a dry run on a CPU: COMPILE= STEPS=8 EVAL_EPISODES=1 (and gpu_onebox.sh's settings)
 export STEPS=${STEPS:-1200}
 W=${W:-/tmp/w}
@@ -29,7 +30,7 @@ case ${1:-} in
   stash) bash $onebox stash ;;
   start)
     bash $onebox stash setup
-    bash $onebox bg chain "$0" chain ;;  # in the background: a command ends after 10 minutes
+    bash $onebox bg chain "$self" chain ;;  # in the background: a command ends after 10 minutes
   chain)
     bash $onebox record heldout merged
     RUN=kept DATA=$W/demos TRAIN_ARGS=$COMPILE START_WAIT=1 bash $onebox bg kept train
@@ -40,6 +41,6 @@ case ${1:-} in
   collect)
     WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
     RUNS="kept merged" bash $onebox results ;;
-  all) bash $onebox setup && bash "$0" chain && bash "$0" collect ;;
+  all) bash $onebox setup && bash "$self" chain && bash "$self" collect ;;
   *) echo "usage: $0 stash|start|collect|all" >&2; exit 2 ;;
 esac

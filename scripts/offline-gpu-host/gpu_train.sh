@@ -1,16 +1,18 @@
 #!/usr/bin/env bash
-# Train the published models (docs/RESULTS.md) on the lent GPU machine, which has CUDA torch but no
-# network, no simulator and no MCAP libraries, and takes at most 64 MiB in and gives 64 MiB back per call.
+# Train the v1 models of docs/RESULTS.md on a GPU machine without network access, which has CUDA torch
+# but no simulator and no MCAP libraries, and takes at most 64 MiB in and gives 64 MiB back per transfer.
 #
-# Here:   rvt2 pack-samples DEMOS --keyframe-starts-only --out samples.safetensors
-#         xz --delta=dist=2 --lzma2=preset=6 -T2 -c samples.safetensors | split -b 50m - .gpu/samples.xz.part.
-#         (cd .gpu && sha256sum samples.xz.part.* > samples.sha256)      # .gpu/ is git-ignored
-# There, one call per step, each carrying .gpu/ with the pieces not yet sent:
-#   bash scripts/gpu_train.sh stash                  # keep the pieces in /tmp/w (the machine keeps /tmp while warm)
-#   bash scripts/gpu_train.sh start                  # check + unpack the samples, train in the background
-#   bash scripts/gpu_train.sh fetch RUN FIRST COUNT  # wait for RUN, copy weight pieces FIRST.. (4 fit a call) to $OUT
-# Here:   python scripts/gpu_checkpoint.py restore PIECES_DIR runs/RUN
+# Online:  rvt2 pack-samples DEMOS --keyframe-starts-only --out samples.safetensors
+#          xz --delta=dist=2 --lzma2=preset=6 -T2 -c samples.safetensors | split -b 50m - .gpu/samples.xz.part.
+#          (cd .gpu && sha256sum samples.xz.part.* > samples.sha256)      # .gpu/ is git-ignored
+# Offline host, one command per step, each carrying .gpu/ with the pieces not yet sent; K=scripts/offline-gpu-host:
+#   bash $K/gpu_train.sh stash                  # keep the pieces in /tmp/w (kept while the machine stays up)
+#   bash $K/gpu_train.sh start                  # check + unpack the samples, train in the background
+#   bash $K/gpu_train.sh fetch RUN FIRST COUNT  # wait for RUN, copy weight pieces FIRST.. (4 per transfer) to $OUT
+# Online:  python $K/gpu_checkpoint.py restore PIECES_DIR runs/RUN
 set -euo pipefail
+cd "$(dirname "$0")/../.."   # the repository root
+KIT=scripts/offline-gpu-host
 W=${W:-/tmp/w}
 STEPS25=${STEPS25:-8000}
 STEPS10=${STEPS10:-4000}
@@ -31,7 +33,7 @@ train_run() {  # NAME ARGS...: one run, then its checkpoint cut into pieces for 
     python3 -m rvt2cli train "${common[@]}" --out "$W/runs/$name" "$@"
   fi
   echo "=== $name end $(date -u +%FT%TZ)"
-  python3 scripts/gpu_checkpoint.py shrink "$W/runs/$name" "$W/export/$name"
+  python3 $KIT/gpu_checkpoint.py shrink "$W/runs/$name" "$W/export/$name"
   cp "$W/runs/$name/train.csv" "$W/runs/$name/run.json" "$W/export/$name/"
   touch "$W/export/$name/DONE"
 }
@@ -44,9 +46,9 @@ start)
   mkdir -p $W && cp .gpu/* $W/
   (cd $W && sha256sum -c samples.sha256)
   cat $W/samples.xz.part.* | xz -d > $W/samples.safetensors
-  rm -rf $W/src && mkdir -p $W/src && cp -r rvt2cli scripts $W/src/   # later calls replace the working tree
+  rm -rf $W/src && mkdir -p $W/src && cp -r rvt2cli scripts $W/src/   # later commands replace the working tree
   cd $W/src
-  RUNS="$RUNS" setsid nohup bash scripts/gpu_train.sh background > $W/train.log 2>&1 < /dev/null &
+  RUNS="$RUNS" setsid nohup bash $KIT/gpu_train.sh background > $W/train.log 2>&1 < /dev/null &
   sleep "${START_WAIT:-90}"
   cat $W/train.log
   ;;
