@@ -128,8 +128,8 @@ def test_extract_keyframes_finds_the_same_keyframes(sim_episode, imported, cli):
         assert k.gripper_open == e.gripper_open and not k.ignore_collisions   # no contacts on a real robot
 
 
-def test_bgr8_and_millimetre_depth_import_within_a_millimetre(sim_episode, tmp_path):
-    bag = write_episode_bag(sim_episode, tmp_path / "bgr.mcap", BagOptions(colour_encoding="bgr8", depth_encoding="16UC1"))
+def test_bgra8_and_millimetre_depth_import_within_a_millimetre(sim_episode, tmp_path):
+    bag = write_episode_bag(sim_episode, tmp_path / "bgr.mcap", BagOptions(colour_encoding="bgra8", depth_encoding="16UC1"))
     [result] = import_bags([bag], tmp_path / "out", OPTIONS)
     b = read_episode(result.path)
     for frame in (0, b.obs_frames[-1]):
@@ -407,7 +407,7 @@ BAD_INPUTS = {
                             cli_args(), ["/camera/wrist/color/camera_info", "camera calibration"]),
     "unknown encoding": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap",
                                                          with_encoding("/camera/front/color/image_raw", "yuv422"))],
-                         cli_args(), ["/camera/front/color/image_raw", "'yuv422'", "rgb8 or bgr8"]),
+                         cli_args(), ["/camera/front/color/image_raw", "'yuv422'", "rgb8, bgr8, rgba8 or bgra8"]),
     "missing transform": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap", without("/tf_static"))], cli_args(),
                           ["no transform panda_link0 -> front_color_optical_frame", "not on /tf or /tf_static"]),
     "stale transform": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap", tf_gap(START + 20 * FRAME_NS, START + 30 * FRAME_NS))],

@@ -1,6 +1,6 @@
 """sensor_msgs/Image and CompressedImage -> numpy, for the encodings camera drivers publish.
 
-Raw colour: `rgb8` or `bgr8`. Raw depth: `16UC1` (millimetres, as realsense-ros publishes it) or
+Raw colour: `rgb8` or `bgr8` (or with alpha, `rgba8`, `bgra8`: Azure Kinect's, dropped). Raw depth: `16UC1` (millimetres, as realsense-ros publishes it) or
 `32FC1` (metres). Rows may be padded (`step`) and multi-byte pixels may be big-endian
 (`is_bigendian`), as the message allows. A depth of 0 (or NaN, or inf) is no return.
 
@@ -18,11 +18,12 @@ import numpy as np
 
 from rvt2cli.data.fusion import depth_in_metres
 
-COLOUR_ENCODINGS = ("rgb8", "bgr8")
+COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
 DEPTH_ENCODINGS = ("16UC1", "32FC1")
 COMPRESSED_COLOUR = ("jpeg", "png")
 COMPRESSED_DEPTH = "compressedDepth"
-_PIXEL = {"rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "16UC1": (np.uint16, 1), "32FC1": (np.float32, 1)}
+_PIXEL = {"rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "rgba8": (np.uint8, 4), "bgra8": (np.uint8, 4),
+          "16UC1": (np.uint16, 1), "32FC1": (np.float32, 1)}
 DEPTH_HEADER = struct.Struct("<iff")   # compressed_depth_image_transport's ConfigHeader
 
 
@@ -76,7 +77,7 @@ def format_problem(msg, depth: bool) -> str | None:
         if "rvl" in fmt:
             return f"compressed depth of format '{msg.format}'; rvt2 reads compressedDepth as PNG, not RVL"
         return None
-    if not any(kind in fmt for kind in COMPRESSED_COLOUR) or compressed_encoding(msg) not in ("", *COLOUR_ENCODINGS, "rgba8", "bgra8"):
+    if not any(kind in fmt for kind in COMPRESSED_COLOUR) or compressed_encoding(msg) not in ("", *COLOUR_ENCODINGS):
         return f"compressed colour of format '{msg.format}'; rvt2 reads JPEG or PNG of rgb8 or bgr8 images"
     return None
 
@@ -94,8 +95,8 @@ def colour_rgb(msg) -> np.ndarray:
     """uint8 [H, W, 3] in RGB order, from an Image or a CompressedImage."""
     if is_compressed(msg):
         return np.ascontiguousarray(_decode(msg.data, cv2.IMREAD_COLOR)[..., ::-1])   # OpenCV decodes to BGR
-    pixels = _pixels(msg)
-    return np.ascontiguousarray(pixels[..., ::-1] if msg.encoding == "bgr8" else pixels)
+    pixels = _pixels(msg)[..., :3]
+    return np.ascontiguousarray(pixels[..., ::-1] if msg.encoding.startswith("bgr") else pixels)
 
 
 def depth_metres(msg) -> np.ndarray:

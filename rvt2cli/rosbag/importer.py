@@ -348,7 +348,7 @@ def _add_image(bag: Bag, stream: ImageStream, msg) -> None:
         allowed = images.DEPTH_ENCODINGS if stream.depth else images.COLOUR_ENCODINGS
         if msg.encoding not in allowed:
             raise UserError(f"{bag.path}: {stream.topic} has image encoding '{msg.encoding}'; rvt2 reads {kind} images as "
-                            f"{' or '.join(allowed)}: set the camera driver's {kind} format to one of them")
+                            f"{', '.join(allowed[:-1])} or {allowed[-1]}: set the camera driver's {kind} format to one of them")
         problem = images.layout_problem(msg)
         if problem:
             raise UserError(f"{bag.path}: {stream.topic}: a damaged image ({problem}); record the demonstration again")
@@ -413,33 +413,34 @@ def _check_camera(bag: Bag, topics: CameraTopics, colour: ImageStream, depth: Im
 
 # --- pass 2: decode the observation frames' images and write the episode --------------------------
 
-def read_observations(plan: ImportPlan) -> dict[int, dict[str, CameraFrame]]:
-    """The cameras' RGB-D images at every observation frame."""
-    wanted: dict[tuple[str, int], list[tuple[int, str]]] = {}
-    for k, frame in enumerate(plan.obs_frames):
+def observations(plan: ImportPlan):
+    """(frame, the cameras' RGB-D images) at every observation frame, in frame order, as the bag streams
+    past: only the frames still waiting for an image are held in memory."""
+    wanted: dict[tuple[str, int], list[tuple[int, CameraPlan, str]]] = {}
+    for k in range(len(plan.obs_frames)):
         for camera in plan.cameras:
-            wanted.setdefault((camera.topics.colour, int(camera.colour_stamps[k])), []).append((frame, camera.topics.name))
-            wanted.setdefault((camera.topics.depth, int(camera.depth_stamps[k])), []).append((frame, camera.topics.name))
-    pixels: dict[tuple[int, str], dict] = {}
+            wanted.setdefault((camera.topics.colour, int(camera.colour_stamps[k])), []).append((k, camera, "rgb"))
+            wanted.setdefault((camera.topics.depth, int(camera.depth_stamps[k])), []).append((k, camera, "depth"))
+    pending: dict[int, dict[tuple[str, str], np.ndarray]] = {}
+    complete = 2 * len(plan.cameras)
+    next_k = 0
     topics = sorted({t for c in plan.cameras for t in (c.topics.colour, c.topics.depth)})
-    cameras = {c.topics.name: c for c in plan.cameras}
-    colour_topics = {c.topics.colour for c in plan.cameras}
     for topic, msg, _ in plan.bag.messages(topics):
         decoded = None
-        for frame, name in wanted.pop((topic, images.stamp_ns(msg.header)), []):
-            kind = "rgb" if topic in colour_topics else "depth"
+        for k, camera, kind in wanted.pop((topic, images.stamp_ns(msg.header)), []):
             if decoded is None:
-                decoded = _decode(plan.bag, topic, msg, cameras[name], kind)
-            pixels.setdefault((frame, name), {})[kind] = decoded
-    observations: dict[int, dict[str, CameraFrame]] = {}
-    for k, frame in enumerate(plan.obs_frames):
-        observations[frame] = {}
-        for camera in plan.cameras:
-            got = pixels[(frame, camera.topics.name)]
-            observations[frame][camera.topics.name] = CameraFrame(rgb=got["rgb"], depth=got["depth"],
-                                                                  intrinsic=camera.undistortion.intrinsic,
-                                                                  cam2world=camera.cam2world[k])
-    return observations
+                decoded = _decode(plan.bag, topic, msg, camera, kind)
+            pending.setdefault(k, {})[(camera.topics.name, kind)] = decoded
+        while next_k < len(plan.obs_frames) and len(pending.get(next_k, ())) == complete:
+            got = pending.pop(next_k)
+            yield plan.obs_frames[next_k], {
+                c.topics.name: CameraFrame(rgb=got[(c.topics.name, "rgb")], depth=got[(c.topics.name, "depth")],
+                                           intrinsic=c.undistortion.intrinsic, cam2world=c.cam2world[next_k])
+                for c in plan.cameras}
+            next_k += 1
+    if next_k < len(plan.obs_frames):
+        raise UserError(f"{plan.bag.path}: the images of frame {plan.obs_frames[next_k]} were not found on the second read "
+                        "of the bag (did it change meanwhile?); import it again")
 
 
 def _decode(bag: Bag, topic: str, msg, camera: CameraPlan, kind: str) -> np.ndarray:
@@ -457,17 +458,15 @@ def _decode(bag: Bag, topic: str, msg, camera: CameraPlan, kind: str) -> np.ndar
 
 def write_imported_episode(plan: ImportPlan, path: Path, index: int) -> Path:
     options = plan.options
-    observations = read_observations(plan)
-    first = plan.cameras[0]
     with EpisodeWriter(path, plan.control_hz) as writer:
         writer.write_instruction(options.instruction, options.task, 0, {})
         for t in range(len(plan.stamps)):
             writer.write_frame(t, joint_names=plan.joint_names, joint_positions=plan.joint_positions[t],
                                joint_velocities=plan.joint_velocities[t], gripper_width=plan.gripper_width[t],
                                gripper_command=plan.gripper_command[t], action=None, contacts=[], tcp_pose=plan.tcp_pose[t])
-        for frame in plan.obs_frames:
-            writer.write_observation(frame, observations[frame])
-        height, width = observations[plan.obs_frames[0]][first.topics.name].depth.shape
+        for frame, cameras in observations(plan):
+            writer.write_observation(frame, cameras)
+        width, height = plan.cameras[0].size
         robot = RobotFacts(arm_joints=tuple(options.arm_joints), finger_joints=tuple(options.finger_joints),
                            tcp_link=options.ee_frame)
         meta = EpisodeMeta(

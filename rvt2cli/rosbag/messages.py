@@ -45,7 +45,7 @@ class Messages:
         return self.types["std_msgs/msg/Header"](**extra, stamp=stamp, frame_id=frame_id)
 
     def image(self, array: np.ndarray, encoding: str, t_ns: int, frame_id: str):
-        """A sensor_msgs/Image from an RGB uint8 [H, W, 3] image (`rgb8`, `bgr8`) or a depth [H, W] in
+        """A sensor_msgs/Image from an RGB uint8 [H, W, 3] image (`rgb8`, `bgr8`, `rgba8`, `bgra8`) or a depth [H, W] in
         metres (`32FC1`, `16UC1` in millimetres)."""
         pixels = _pixels(array, encoding)
         height, width = pixels.shape[:2]
@@ -105,6 +105,9 @@ def _pixels(array: np.ndarray, encoding: str) -> np.ndarray:
         return np.asarray(array, np.uint8)
     if encoding == "bgr8":
         return np.asarray(array, np.uint8)[..., ::-1]
+    if encoding in ("rgba8", "bgra8"):
+        alpha = np.full(np.shape(array)[:2] + (1,), 255, np.uint8)
+        return np.concatenate([_pixels(array, encoding[:3] + "8"), alpha], axis=-1)
     if encoding == "32FC1":
         return np.asarray(array, "<f4")
     if encoding == "16UC1":
