@@ -4,6 +4,7 @@ MCAP and sqlite3, ROS 1 Noetic), imported back, and compared; and every kind of 
 one line, leaving nothing behind."""
 
 import shutil
+import sqlite3
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -184,13 +185,23 @@ def same_episode(a, b):
     assert {k: v for k, v in a.meta.extra.items() if k not in ignore} == {k: v for k, v in b.meta.extra.items() if k not in ignore}
 
 
+def as_humble_writes_it(db3: Path) -> Path:
+    """A .db3 as ROS 2 Humble's rosbag2 writes it: schema version 3, no message definitions stored."""
+    with sqlite3.connect(db3) as db:
+        db.execute("UPDATE schema SET schema_version = 3")
+        db.execute("DROP TABLE message_definitions")
+    return db3
+
+
 def test_every_container_imports_to_identical_episodes(sim_episode, imported, tmp_path):
-    """The same recording as ROS 2 Humble sqlite3 (a .db3 file and a folder), Jazzy MCAP and a ROS 1 bag."""
+    """The same recording as ROS 2 Humble sqlite3 (a .db3 file with and without message definitions,
+    a folder), Jazzy MCAP and a ROS 1 bag."""
     bags = [write_episode_bag(sim_episode, tmp_path / "humble.db3"),
+            as_humble_writes_it(write_episode_bag(sim_episode, tmp_path / "humble_no_definitions.db3")),
             write_episode_bag(sim_episode, tmp_path / "humble_sqlite3", BagOptions(storage="sqlite3")),
             write_episode_bag(sim_episode, tmp_path / "jazzy.mcap", BagOptions(distro="jazzy")),
             write_episode_bag(sim_episode, tmp_path / "noetic.bag")]
-    assert [open_bag(b).ros_version for b in bags] == [2, 2, 2, 1]
+    assert [open_bag(b).ros_version for b in bags] == [2, 2, 2, 2, 1]
     assert (tmp_path / "humble_sqlite3" / "humble_sqlite3.db3").is_file()
     # the ROS 1 bag has the ROS 2 topic names here: name them, not the ROS 1 defaults
     options = ImportOptions(**{**OPTIONS.__dict__, "joint_states": ("/joint_states",), "ee_frame": "panda_hand_tcp"})

@@ -66,7 +66,8 @@ class Bag:
         """(topic, decoded message, log time in ns) for the given topics, streamed in log-time order."""
         try:
             with _reader(self.path) as reader:
-                wanted = [c for c in reader.connections if c.topic in set(topics)]
+                topics = set(topics)
+                wanted = [c for c in reader.connections if c.topic in topics]
                 if not wanted:
                     return
                 for connection, log_time, raw in reader.messages(connections=wanted):

@@ -405,7 +405,7 @@ def _check_camera(bag: Bag, topics: CameraTopics, colour: ImageStream, depth: Im
                         "record the camera driver's camera_info")
     problem = distortion_problem(info)
     if problem:
-        raise UserError(f"{bag.path}: {topics.info}: {problem}; calibrate the camera with one of them")
+        raise UserError(f"{bag.path}: {topics.info}: {problem}; calibrate the camera with plumb_bob, rational_polynomial or equidistant")
     if (info.width, info.height) not in ((0, 0), colour.size):
         raise UserError(f"{bag.path}: {topics.info} describes a {info.width}x{info.height} camera but {topics.colour} "
                         f"is {colour.size[0]}x{colour.size[1]}; record the camera_info of the same stream")
