@@ -8,23 +8,22 @@ import sqlite3
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
-import cv2
 from scipy.spatial import cKDTree
 
 from conftest import TINY_TRAIN, assert_one_line_error, run_cli
-from rvt2cli.data import read_episode
+from rvt2cli.data import CameraFrame, read_episode
 from rvt2cli.data.fusion import camera_points
 from rvt2cli.keyframes.extract import annotate
 from rvt2cli.record.recorder import RecordOptions, observation_frames, record
-from rvt2cli.data import CameraFrame
 from rvt2cli.rosbag.bagfile import open_bag
 from rvt2cli.rosbag.bagwriter import BagWriter
 from rvt2cli.rosbag.calibration import Undistortion
 from rvt2cli.rosbag.from_episode import FRANKA_ROS, PANDA_BASE_IN_SIM_WORLD, BagOptions, write_episode_bag
-from rvt2cli.rosbag.messages import Messages
 from rvt2cli.rosbag.importer import ImportOptions, import_bags
+from rvt2cli.rosbag.messages import Messages
 from rvt2cli.tasks import get_task
 
 pytestmark = pytest.mark.sim
@@ -217,7 +216,7 @@ def test_franka_ros_bag_imports_with_the_ros1_defaults(sim_episode, imported, tm
     assert {"/franka_state_controller/joint_states", "/franka_gripper/joint_states", "/front/color/image_raw"} \
         <= set(open_bag(bag).topics)
     out = tmp_path / "out"
-    r = cli("import-rosbag", bag, "--out", out, *CLI_ARGS[:6], "--camera", "/front", "--camera", "/wrist")
+    r = cli("import-rosbag", bag, "--out", out, *CLI_ARGS[:CLI_ARGS.index("--camera")], "--camera", "/front", "--camera", "/wrist")
     assert r.returncode == 0, r.stderr
     b = read_episode(out / f"{TASK}_0000.mcap")
     assert b.meta.extra["joint_states"] == ["/franka_state_controller/joint_states", "/franka_gripper/joint_states"]
