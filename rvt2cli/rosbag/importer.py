@@ -438,6 +438,8 @@ def observations(plan: ImportPlan):
                                            intrinsic=c.undistortion.intrinsic, cam2world=c.cam2world[next_k])
                 for c in plan.cameras}
             next_k += 1
+        if next_k == len(plan.obs_frames):
+            return   # the rest of the bag holds no image that is kept
     if next_k < len(plan.obs_frames):
         raise UserError(f"{plan.bag.path}: the images of frame {plan.obs_frames[next_k]} were not found on the second read "
                         "of the bag (did it change meanwhile?); import it again")
