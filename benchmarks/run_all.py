@@ -1,4 +1,4 @@
-"""All speed benchmarks on the current machine: renderer, recording, training and inference.
+"""All speed benchmarks on the current machine: renderer, recording, training, inference and bag import.
 
     python -m benchmarks.run_all [--quick] [--out benchmarks/results/NAME]
 
@@ -25,7 +25,8 @@ def main() -> None:
     device = "cuda" if torch.cuda.is_available() else "cpu"
     quick = ["--quick"] if args.quick else []
     runs = [("render", ["benchmarks.render_bench", "--device", device]),
-            ("policy", ["benchmarks.policy_bench", "--device", device])]
+            ("policy", ["benchmarks.policy_bench", "--device", device]),
+            ("rosbag", ["benchmarks.rosbag_bench"])]
     if not args.skip_record:
         runs.append(("record", ["benchmarks.record_bench"]))
     sections = []

@@ -1,26 +1,29 @@
-"""`rvt2 import-rosbag` against the simulator's ground truth: a recorded episode is written as the ROS 2
-bag a real robot with realsense cameras would have recorded, imported back, and compared; and every
-kind of bad bag is refused in one line, leaving nothing behind."""
+"""`rvt2 import-rosbag` against the simulator's ground truth: a recorded episode is written as the bag a
+real robot with realsense cameras would have recorded (by `rosbags`' writers: ROS 2 Humble and Jazzy in
+MCAP and sqlite3, ROS 1 Noetic), imported back, and compared; and every kind of bad bag is refused in
+one line, leaving nothing behind."""
 
 import shutil
+import sqlite3
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
-from mcap.reader import make_reader
-from mcap_ros2.decoder import DecoderFactory
-from mcap_ros2.writer import Writer
 from scipy.spatial import cKDTree
 
 from conftest import TINY_TRAIN, assert_one_line_error, run_cli
-from rvt2cli.data import read_episode
+from rvt2cli.data import CameraFrame, read_episode
 from rvt2cli.data.fusion import camera_points
 from rvt2cli.keyframes.extract import annotate
 from rvt2cli.record.recorder import RecordOptions, observation_frames, record
-from rvt2cli.rosbag import msgdefs
-from rvt2cli.rosbag.from_episode import PANDA_BASE_IN_SIM_WORLD, BagOptions, write_episode_bag
+from rvt2cli.rosbag.bagfile import open_bag
+from rvt2cli.rosbag.bagwriter import BagWriter
+from rvt2cli.rosbag.calibration import Undistortion
+from rvt2cli.rosbag.from_episode import FRANKA_ROS, PANDA_BASE_IN_SIM_WORLD, BagOptions, write_episode_bag
 from rvt2cli.rosbag.importer import ImportOptions, import_bags
+from rvt2cli.rosbag.messages import Messages
 from rvt2cli.tasks import get_task
 
 pytestmark = pytest.mark.sim
@@ -125,8 +128,8 @@ def test_extract_keyframes_finds_the_same_keyframes(sim_episode, imported, cli):
         assert k.gripper_open == e.gripper_open and not k.ignore_collisions   # no contacts on a real robot
 
 
-def test_bgr8_and_millimetre_depth_import_within_a_millimetre(sim_episode, tmp_path):
-    bag = write_episode_bag(sim_episode, tmp_path / "bgr.mcap", BagOptions(colour_encoding="bgr8", depth_encoding="16UC1"))
+def test_bgra8_and_millimetre_depth_import_within_a_millimetre(sim_episode, tmp_path):
+    bag = write_episode_bag(sim_episode, tmp_path / "bgr.mcap", BagOptions(colour_encoding="bgra8", depth_encoding="16UC1"))
     [result] = import_bags([bag], tmp_path / "out", OPTIONS)
     b = read_episode(result.path)
     for frame in (0, b.obs_frames[-1]):
@@ -136,7 +139,7 @@ def test_bgr8_and_millimetre_depth_import_within_a_millimetre(sim_episode, tmp_p
 
 def test_rosbag2_folder_imports_after_the_existing_episodes(sim_episode, imported, tmp_path, cli):
     folder = write_episode_bag(sim_episode, tmp_path / "demo_bag")
-    assert sorted(p.name for p in folder.iterdir()) == ["demo_bag_0.mcap", "metadata.yaml"]
+    assert sorted(p.name for p in folder.iterdir()) == ["demo_bag.mcap", "metadata.yaml"]
     out = tmp_path / "episodes"
     out.mkdir()
     shutil.copy(imported.path, out / f"{TASK}_0003.mcap")   # an earlier import: never overwritten
@@ -167,23 +170,131 @@ def test_training_and_offline_precision_on_imported_episodes(imported, tmp_path)
     assert task["samples"] > 0 and np.isfinite(task["stage2_mm"]["median"]) and (tmp_path / "offline" / "offline.md").is_file()
 
 
+def same_episode(a, b):
+    """Equal in everything but where the bag came from."""
+    assert a.num_frames == b.num_frames and a.obs_frames == b.obs_frames
+    for field in ("joint_names", "joint_positions", "joint_velocities", "gripper_width", "gripper_command", "tcp_pose"):
+        np.testing.assert_array_equal(np.asarray(getattr(a.robot, field)), np.asarray(getattr(b.robot, field)))
+    for frame in a.obs_frames:
+        for name, cam in a.cameras(frame).items():
+            other = b.cameras(frame)[name]
+            for field in ("rgb", "depth", "intrinsic", "cam2world"):
+                np.testing.assert_array_equal(getattr(cam, field), getattr(other, field))
+    ignore = ("bag", "start_stamp_ns")
+    assert {k: v for k, v in a.meta.extra.items() if k not in ignore} == {k: v for k, v in b.meta.extra.items() if k not in ignore}
+
+
+def as_humble_writes_it(db3: Path) -> Path:
+    """A .db3 as ROS 2 Humble's rosbag2 writes it: schema version 3, no message definitions stored."""
+    with sqlite3.connect(db3) as db:
+        db.execute("UPDATE schema SET schema_version = 3")
+        db.execute("DROP TABLE message_definitions")
+    return db3
+
+
+def test_every_container_imports_to_identical_episodes(sim_episode, imported, tmp_path):
+    """The same recording as ROS 2 Humble sqlite3 (a .db3 file with and without message definitions,
+    a folder), Jazzy MCAP and a ROS 1 bag."""
+    bags = [write_episode_bag(sim_episode, tmp_path / "humble.db3"),
+            as_humble_writes_it(write_episode_bag(sim_episode, tmp_path / "humble_no_definitions.db3")),
+            write_episode_bag(sim_episode, tmp_path / "humble_sqlite3", BagOptions(storage="sqlite3")),
+            write_episode_bag(sim_episode, tmp_path / "jazzy.mcap", BagOptions(distro="jazzy")),
+            write_episode_bag(sim_episode, tmp_path / "noetic.bag")]
+    assert [open_bag(b).ros_version for b in bags] == [2, 2, 2, 2, 1]
+    assert (tmp_path / "humble_sqlite3" / "humble_sqlite3.db3").is_file()
+    # the ROS 1 bag has the ROS 2 topic names here: name them, not the ROS 1 defaults
+    options = ImportOptions(**{**OPTIONS.__dict__, "joint_states": ("/joint_states",), "ee_frame": "panda_hand_tcp"})
+    results = import_bags(bags, tmp_path / "out", options)
+    for result in results:
+        same_episode(imported, read_episode(result.path))
+
+
+def test_franka_ros_bag_imports_with_the_ros1_defaults(sim_episode, imported, tmp_path, cli):
+    """franka_ros: the arm's joints and the gripper's on two topics, the TCP as panda_EE; realsense2_camera's
+    topics under /NAME. Only the cameras are named."""
+    bag = write_episode_bag(sim_episode, tmp_path / "franka.bag", FRANKA_ROS)
+    assert {"/franka_state_controller/joint_states", "/franka_gripper/joint_states", "/front/color/image_raw"} \
+        <= set(open_bag(bag).topics)
+    out = tmp_path / "out"
+    r = cli("import-rosbag", bag, "--out", out, *CLI_ARGS[:CLI_ARGS.index("--camera")], "--camera", "/front", "--camera", "/wrist")
+    assert r.returncode == 0, r.stderr
+    b = read_episode(out / f"{TASK}_0000.mcap")
+    assert b.meta.extra["joint_states"] == ["/franka_state_controller/joint_states", "/franka_gripper/joint_states"]
+    assert b.robot.joint_names == imported.robot.joint_names
+    np.testing.assert_array_equal(b.robot.joint_positions, imported.robot.joint_positions)
+    np.testing.assert_allclose(b.robot.tcp_pose, imported.robot.tcp_pose, atol=1e-9)
+    assert_same_cloud(sim_episode, b, 0, tolerance=1e-4)
+
+
+def test_compressed_images_are_read_where_raw_ones_are_missing(sim_episode, imported, tmp_path):
+    """PNG colour and compressedDepth (16-bit PNG): colour exact, depth within half a millimetre. With raw
+    and compressed (JPEG, lossy) both recorded, the raw images are the ones imported."""
+    only_compressed = write_episode_bag(sim_episode, tmp_path / "png.mcap", BagOptions(raw=False, compressed="png"))
+    assert not any(t.endswith("image_raw") for t in open_bag(only_compressed).topics)
+    both = write_episode_bag(sim_episode, tmp_path / "both.db3", BagOptions(compressed="jpeg"))
+    png, raw = (read_episode(r.path) for r in import_bags([only_compressed, both], tmp_path / "out", OPTIONS))
+    assert png.meta.extra["cameras"]["front"] == {"colour": "/camera/front/color/image_raw/compressed", "camera_info":
+                                                  "/camera/front/color/camera_info",
+                                                  "depth": "/camera/front/aligned_depth_to_color/image_raw/compressedDepth"}
+    for frame in (0, png.obs_frames[-1]):
+        assert_same_cameras(sim_episode, png, frame, depth_tolerance=0.0005 + 1e-6)
+    assert raw.meta.extra["cameras"]["front"]["colour"] == "/camera/front/color/image_raw"
+    same_episode(imported, raw)
+
+
+@pytest.mark.parametrize("model, coefficients", [
+    ("plumb_bob", [-0.28, 0.09, 0.001, -0.0005, -0.015]),
+    ("rational_polynomial", [0.2, -0.1, 0.001, -0.0005, 0.0, 0.5, -0.05, 0.0]),
+    ("equidistant", [-0.02, 0.01, -0.008, 0.002]),
+])
+def test_distorted_camera_sees_a_plane_flat(model, coefficients):
+    """A plane seen through a distorted lens, as the camera records it (each recorded pixel sees along
+    its distorted ray): undistorted, every pixel's point lies on the plane; taken as pinhole, it does not."""
+    messages = Messages("humble")
+    width, height = 320, 240
+    K = np.array([[220.0, 0, 159.5], [0, 220.0, 119.5], [0, 0, 1]])
+    info = messages.camera_info(K + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]), width, height, 0, "cam", model, coefficients)
+    # the plane n . x = 1 m, tilted; a recorded pixel (u, v) sees along the ray of its undistorted point
+    normal = np.array([0.2, -0.1, 1.0])
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
+    if model == "equidistant":
+        rays = cv2.fisheye.undistortPoints(pixels, K, np.array(coefficients)).reshape(-1, 2)
+    else:
+        rays = cv2.undistortPoints(pixels, K, np.array(coefficients)).reshape(-1, 2)
+    rays = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
+    depth = (1.0 / (rays @ normal)).reshape(height, width).astype(np.float32)   # z of the ray's hit
+
+    def off_plane_mm(frame: CameraFrame) -> np.ndarray:
+        xyz = camera_points(frame).xyz.astype(np.float64)
+        return np.abs(xyz @ normal - 1.0) / np.linalg.norm(normal) * 1000
+
+    pose = np.array([0, 0, 0, 0, 0, 0, 1.0])
+    undistortion = Undistortion.of(info, (width, height))
+    undistorted = CameraFrame(rgb=np.zeros((height, width, 3), np.uint8), depth=undistortion.depth(depth),
+                              intrinsic=undistortion.intrinsic, cam2world=pose)
+    assert (undistorted.depth > 0).mean() > 0.8
+    # nearest-neighbour remap: each depth comes from within half a pixel of where it belongs
+    error = off_plane_mm(undistorted)
+    assert np.median(error) < 0.3 and error.max() < 2.0
+    pinhole = CameraFrame(rgb=undistorted.rgb, depth=depth, intrinsic=undistortion.intrinsic, cam2world=pose)
+    assert np.median(off_plane_mm(pinhole)) > 5 * np.median(error)
+
+
 # --- bags edited message by message: what goes wrong in recordings -------------------------------
 
 def rewrite_bag(source: Path, target: Path, edit) -> Path:
-    """Copy a bag message by message; `edit(topic, msg, log_time)` returns (topic, msg, log_time) to
-    write, or None to drop the message."""
-    with open(source, "rb") as f, open(target, "wb") as out:
-        writer = Writer(out)
-        schemas = {}
-        for schema, channel, message, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
-            kept = edit(channel.topic, msg, message.log_time)
-            if kept is None:
-                continue
-            if schema.name not in schemas:
-                schemas[schema.name] = writer.register_msgdef(schema.name, schema.data.decode())
-            topic, msg, log_time = kept
-            writer.write_message(topic, schemas[schema.name], msg, log_time=log_time, publish_time=log_time)
-        writer.finish()
+    """Copy a bag message by message, into the same kind of bag; `edit(topic, msg, log_time)` returns
+    (topic, msg, log_time) to write, or None to drop the message; a message type of the result is
+    written in place of the source's when edit returns (topic, msg, log_time, datatype)."""
+    source_bag = open_bag(source)
+    distro = "noetic" if source_bag.ros_version == 1 else "humble"
+    with BagWriter(target, distro) as out:
+        for topic, msg, log_time in source_bag.messages(list(source_bag.topics)):
+            kept = edit(topic, msg, log_time)
+            if kept is not None:
+                new_topic, msg, log_time, *datatype = kept
+                out.write(new_topic, datatype[0] if datatype else source_bag.topics[topic].datatype, msg, log_time)
     return target
 
 
@@ -239,18 +350,30 @@ def test_frames_before_and_after_a_stream_are_cut(sim_episode, bag, tmp_path):
 
 
 def empty_bag(path: Path) -> Path:
-    with open(path, "wb") as f:
-        writer = Writer(f)
-        writer.register_msgdef(msgdefs.IMAGE, msgdefs.full_definition(msgdefs.IMAGE))
-        writer.finish()
+    with BagWriter(path, "humble") as bag:
+        bag.writer.add_connection("/camera/camera/color/image_raw", "sensor_msgs/msg/Image", typestore=bag.messages.store)
     return path
 
 
-def sqlite_bag(folder: Path) -> Path:
+def unknown_storage(folder: Path) -> Path:
     folder.mkdir()
-    (folder / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: sqlite3\n"
-                                          "  relative_file_paths:\n  - demo_0.db3\n")
+    (folder / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: hdf5\n"
+                                          "  relative_file_paths:\n  - demo_0.h5\n")
     return folder
+
+
+def as_string(topic):
+    """A bag carrying std_msgs/String on `topic`: a message type rvt2 does not read there."""
+    def edit(t, msg, log_time):
+        if t == topic:
+            return t, Messages("noetic").types["std_msgs/msg/String"](data="hello"), log_time, "std_msgs/msg/String"
+        return t, msg, log_time
+    return edit
+
+
+def truncated(path: Path, keep: float) -> Path:
+    path.write_bytes(path.read_bytes()[: int(path.stat().st_size * keep)])
+    return path
 
 
 # --- bad input: one line, exit code 2, nothing written ---------------------------------------------
@@ -272,11 +395,21 @@ def write(path: Path, data: bytes) -> Path:
 BAD_INPUTS = {
     "missing file": (lambda bag, ep, d: [d / "nope.mcap"], cli_args(), ["nope.mcap", "no such file"]),
     "not MCAP": (lambda bag, ep, d: [write(d / "notes.mcap", b"just some text")], cli_args(),
-                 ["notes.mcap", "not an MCAP file"]),
-    "rvt2 episode, not a ROS 2 bag": (lambda bag, ep, d: [ep], cli_args(), ["not a ROS 2 bag", "ros2 bag record -s mcap"]),
-    "truncated": (lambda bag, ep, d: [write(d / "cut.mcap", bag.read_bytes()[: bag.stat().st_size // 2])], cli_args(),
-                  ["cut.mcap", "truncated", "ros2 bag reindex"]),
-    "sqlite3 storage": (lambda bag, ep, d: [sqlite_bag(d / "old_bag")], cli_args(), ["old_bag", "sqlite3", "ros2 bag convert"]),
+                 ["notes.mcap", "cannot open the bag"]),
+    "rvt2 episode, not a ROS 2 bag": (lambda bag, ep, d: [ep], cli_args(), ["cannot open the bag", "not a ROS 2 bag"]),
+    "truncated MCAP": (lambda bag, ep, d: [write(d / "cut.mcap", bag.read_bytes()[: bag.stat().st_size // 2])], cli_args(),
+                       ["cut.mcap", "truncated", "ros2 bag reindex"]),
+    "truncated .db3": (lambda bag, ep, d: [truncated(write_episode_bag(ep, d / "cut.db3"), 0.5)], cli_args(),
+                       ["cut.db3", "cannot", "truncated"]),
+    "unknown storage": (lambda bag, ep, d: [unknown_storage(d / "h5_bag")], cli_args(), ["h5_bag", "unknown bag storage 'hdf5'"]),
+    "unknown file": (lambda bag, ep, d: [write(d / "demo.h5", b"HDF")], cli_args(), ["demo.h5", "unknown bag storage '.h5'"]),
+    "no images": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap", without("/camera/front/color/image_raw"))], cli_args(),
+                  ["no colour images on topic /camera/front/color/image_raw"]),
+    "ROS 1 bag of a type rvt2 does not read": (
+        lambda bag, ep, d: [rewrite_bag(write_episode_bag(ep, d / "ros1.bag"), d / "b.bag",
+                                        as_string("/camera/front/color/image_raw"))],
+        cli_args("--joint-states", "/joint_states", "--ee-frame", "panda_hand_tcp"),
+        ["b.bag", "carries std_msgs/msg/String", "must be a sensor_msgs/msg/Image"]),
     "empty bag": (lambda bag, ep, d: [empty_bag(d / "empty.mcap")], cli_args(), ["empty.mcap", "no messages"]),
     "missing topic": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap", without("/joint_states"))], cli_args(),
                       ["b.mcap", "no joint states on topic /joint_states", "the bag has: /camera/front/"]),
@@ -284,7 +417,7 @@ BAD_INPUTS = {
                             cli_args(), ["/camera/wrist/color/camera_info", "camera calibration"]),
     "unknown encoding": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap",
                                                          with_encoding("/camera/front/color/image_raw", "yuv422"))],
-                         cli_args(), ["/camera/front/color/image_raw", "'yuv422'", "rgb8 or bgr8"]),
+                         cli_args(), ["/camera/front/color/image_raw", "'yuv422'", "rgb8, bgr8, rgba8 or bgra8"]),
     "missing transform": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap", without("/tf_static"))], cli_args(),
                           ["no transform panda_link0 -> front_color_optical_frame", "not on /tf or /tf_static"]),
     "stale transform": (lambda bag, ep, d: [rewrite_bag(bag, d / "b.mcap", tf_gap(START + 20 * FRAME_NS, START + 30 * FRAME_NS))],

@@ -1,4 +1,4 @@
-"""`rvt2 import-rosbag`: real-robot demonstrations (ROS 2 bags in MCAP) -> rvt2 episode files."""
+"""`rvt2 import-rosbag`: real-robot demonstrations (ROS 1 or ROS 2 bags) -> rvt2 episode files."""
 
 from rvt2cli.cli.args import COUNT, POSITIVE, names, numbers
 from rvt2cli.errors import UserError
@@ -10,35 +10,45 @@ BOUNDS_HINT = ("the workspace box in the robot's base frame, in metres, that hol
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "import-rosbag", help="turn ROS 2 bags (MCAP) of real-robot demonstrations into episode files",
-        description="Read ROS 2 bags recorded with `ros2 bag record -s mcap` (an .mcap file or a rosbag2 folder; one "
-                    "bag per demonstration) from a robot with realsense-ros cameras, and write one rvt2 episode per bag "
-                    "into --out, as `rvt2 record` writes them: the world frame is the robot's base frame, the first "
-                    "camera's colour stream is the clock. Every bag is checked before any episode is written. "
-                    "See docs/REAL_ROBOT.md.",
+        "import-rosbag", help="turn ROS 1 or ROS 2 bags of real-robot demonstrations into episode files",
+        description="Read bags recorded with `ros2 bag record` (sqlite3 or MCAP storage: a rosbag2 folder or one .db3 "
+                    "or .mcap file) or ROS 1's `rosbag record` (a .bag file), one bag per demonstration, from a robot "
+                    "with RGB-D cameras (raw or compressed images), and write one rvt2 episode per bag into --out, as "
+                    "`rvt2 record` writes them: the world frame is the robot's base frame, the first camera's colour "
+                    "stream is the clock. Unset topics and frames take the defaults of the bag's ROS version "
+                    "(ROS 2: franka_ros2 and realsense-ros; ROS 1: franka_ros and realsense2_camera). Every bag is "
+                    "checked before any episode is written. See docs/REAL_ROBOT.md.",
     )
-    p.add_argument("bags", nargs="*", metavar="BAG", help=".mcap file or rosbag2 folder (with metadata.yaml)")
+    p.add_argument("bags", nargs="*", metavar="BAG", help="ROS 1 .bag file, rosbag2 folder (with metadata.yaml), or one "
+                                                          ".db3 or .mcap file")
     p.add_argument("--out", help="output folder; episodes are named TASK_NNNN.mcap after the ones already there")
     p.add_argument("--task", help="task name (letters, digits, '_', '-')")
     p.add_argument("--instruction", help="the language instruction of the demonstrations")
     p.add_argument("--scene-bounds", type=numbers(6), metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", help=f"required: {BOUNDS_HINT}")
     p.add_argument("--camera", action="append", metavar="PREFIX",
-                   help="realsense-ros topic prefix of a camera (repeatable; the first is the clock; default /camera/camera); "
-                        "the camera's name in the episode is its last part")
+                   help="topic prefix of a camera (repeatable; the first is the clock; default /camera/camera for ROS 2 "
+                        "(realsense-ros), /camera for ROS 1 (realsense2_camera)); the camera's name in the episode is its "
+                        "last part")
     p.add_argument("--color-topic", default="color/image_raw",
-                   help="colour image topic, relative to the prefix (default color/image_raw)")
+                   help="colour image topic, relative to the prefix (default color/image_raw; its /compressed where only "
+                        "that was recorded)")
     p.add_argument("--depth-topic", help="depth topic, relative to the prefix (default aligned_depth_to_color/image_raw, "
-                                         "else depth/image_rect_raw when it is in the colour camera's frame)")
+                                         "else depth/image_rect_raw when it is in the colour camera's frame; their "
+                                         "/compressedDepth where only that was recorded)")
     p.add_argument("--camera-info-topic", default="color/camera_info",
                    help="colour camera_info topic, relative to the prefix (default color/camera_info)")
-    p.add_argument("--joint-states", default="/joint_states", help="sensor_msgs/JointState topic (default /joint_states)")
+    p.add_argument("--joint-states", action="append", metavar="TOPIC",
+                   help="sensor_msgs/JointState topic (repeatable: the topics are merged joint by joint; default "
+                        "/joint_states for ROS 2, /franka_state_controller/joint_states and /franka_gripper/joint_states "
+                        "for ROS 1)")
     p.add_argument("--arm-joints", type=names, default=PANDA.arm_joints,
                    help="comma-separated arm joint names (default panda_joint1..panda_joint7)")
     p.add_argument("--finger-joints", type=names, default=PANDA.finger_joints,
                    help="comma-separated finger joint names; the gripper width is the sum of their positions")
     p.add_argument("--base-frame", default="panda_link0",
                    help="TF frame of the robot base: the episode's world frame (default panda_link0)")
-    p.add_argument("--ee-frame", default="panda_hand_tcp", help="TF frame of the tool centre point (default panda_hand_tcp)")
+    p.add_argument("--ee-frame", help="TF frame of the tool centre point (default panda_hand_tcp for ROS 2, panda_EE "
+                                      "for ROS 1)")
     p.add_argument("--gripper-threshold", type=POSITIVE, default=0.07,
                    help="gripper width (m) above which the gripper counts as open (default 0.07; a Panda opens to 0.08)")
     p.add_argument("--sync-tolerance", type=POSITIVE, default=0.02,
@@ -60,8 +70,9 @@ def run(args) -> int:
 
     options = ImportOptions(
         task=args.task, instruction=args.instruction, scene_bounds=args.scene_bounds,
-        cameras=tuple(args.camera or ["/camera/camera"]), colour_topic=args.color_topic, depth_topic=args.depth_topic,
-        camera_info_topic=args.camera_info_topic, joint_states=args.joint_states, arm_joints=args.arm_joints,
+        cameras=tuple(args.camera) if args.camera else None, colour_topic=args.color_topic, depth_topic=args.depth_topic,
+        camera_info_topic=args.camera_info_topic, joint_states=tuple(args.joint_states) if args.joint_states else None,
+        arm_joints=args.arm_joints,
         finger_joints=args.finger_joints, base_frame=args.base_frame, ee_frame=args.ee_frame,
         gripper_threshold=args.gripper_threshold, sync_tolerance=args.sync_tolerance, obs_every=args.obs_every,
         voxel_size=args.voxel_size,

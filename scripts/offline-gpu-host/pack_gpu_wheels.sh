@@ -17,7 +17,8 @@ WHEELS=(
   gymnasium==1.4.0 Farama-Notifications==0.0.6 dacite==1.9.2 defusedxml==0.7.1 GitPython==3.2.1 gitdb==4.0.12
   smmap==5.0.3 tyro==1.0.17 docstring_parser==0.18.0 typeguard==4.6.0 pytorch-kinematics==0.7.6
   arm_pytorch_utilities==0.5.0 pytorch-seed==0.2.0 importlib_resources==7.1.0 pyperclip==1.11.0
-  mcap==1.6.0 mcap-protobuf-support==0.6.0 mcap-ros2-support==0.6.0 foxglove-schemas-protobuf==0.4.0 zstandard==0.25.0
+  mcap==1.6.0 mcap-protobuf-support==0.6.0 foxglove-schemas-protobuf==0.4.0 zstandard==0.25.0
+  rosbags==0.11.9 apsw==3.54.1.0 backports.zstd==1.8.0 ruamel.yaml==0.19.1 lz4==4.4.5
   jsonschema==4.26.0 jsonschema-specifications==2025.9.1 referencing==0.37.0 rpds-py==2026.9.1
   warp-lang==1.19.0 scipy==1.17.1
   ipython==9.18.1 ipython_pygments_lexers==1.1.1 asttokens==3.0.2 decorator==5.3.1 executing==2.3.0 jedi==0.20.1
