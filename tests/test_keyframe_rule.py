@@ -125,7 +125,8 @@ def test_merge_refinements_keeps_the_last_of_a_chain_of_small_corrections():
     # pre-insert, then corrections of 25, 10, 3 and 1 mm, then a 120 mm insertion (the expert's insert_peg)
     frames = [10, 20, 30, 40, 50, 60]
     x = np.cumsum([0.0, 0.025, 0.010, 0.003, 0.001, 0.120])
-    positions = np.zeros((61, 3))
+    positions = np.zeros((61, 7))
+    positions[:, 6] = 1.0  # x y z qx qy qz qw: no turn
     for f, xi in zip(frames, x):
         positions[f, 0] = xi
     events = [KeyframeEvent(f, ("stopped",)) for f in frames[:-1]] + [KeyframeEvent(60, ("last",))]
@@ -134,3 +135,6 @@ def test_merge_refinements_keeps_the_last_of_a_chain_of_small_corrections():
     assert [k.frame for k in merge_refinements(events, positions, 0.005)] == [10, 20, 50, 60]
     grasp = [KeyframeEvent(10, ("stopped",)), KeyframeEvent(20, ("gripper",))]   # a grasp is never merged away
     assert merge_refinements(grasp, positions, 0.030) == grasp
+    turned = positions.copy()
+    turned[50, 3:] = [0.0, 0.0, np.sin(np.radians(18)), np.cos(np.radians(18))]  # 36 degrees about z, 1 mm away
+    assert [k.frame for k in merge_refinements(events, turned, 0.030)] == [40, 50, 60]  # a turn in place stays

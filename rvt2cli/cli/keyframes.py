@@ -28,8 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("--obs-every", type=COUNT, default=d.obs_every,
                    help=f"an observation start every N frames besides the keyframes (default {d.obs_every}, as the reference)")
     p.add_argument("--merge-refinements", type=number(0.0), default=d.merge_m * 1000, metavar="MM",
-                   help="drop each rest keyframe that the next rest keyframe moves by less than MM millimetres: an "
-                        "expert's re-aiming in small steps becomes one keyframe (default 0: keep them)")
+                   help="drop each rest keyframe that the next rest keyframe moves by less than MM millimetres and turns "
+                        f"by less than {d.merge_deg:g} degrees: an expert's re-aiming in small steps becomes one keyframe "
+                        "(default 0: keep them)")
     p.set_defaults(run=run)
 
 

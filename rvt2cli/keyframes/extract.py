@@ -22,8 +22,8 @@ def label_keyframes(gripper_command, arm_velocities, contacts, tcp_pose,
     collision flag there. `arm_velocities` [T, J] are the arm joints' only (not the fingers'); `near`
     [T] the bodies near the robot per frame, where recorded."""
     gripper_command = np.asarray(gripper_command)
-    events = merge_refinements(find_keyframes(gripper_command > 0, arm_velocities, params),
-                               np.asarray(tcp_pose)[:, :3], params.merge_m)
+    events = merge_refinements(find_keyframes(gripper_command > 0, arm_velocities, params), np.asarray(tcp_pose),
+                               params.merge_m, params.merge_deg)
     flags = ignore_collisions(contacts, events, near)
     return [Keyframe.from_pose(tcp_pose[e.frame], gripper_command[e.frame] > 0, flag, e.frame, e.reasons)
             for e, flag in zip(events, flags)]

@@ -31,7 +31,8 @@ class KeyframeParams:
     pause_velocity: float = 0.05  # rad/s: a stretch slower than this, between two motions, is a pause
     stop_buffer: int = 4         # frames a rest keyframe blocks the next one
     obs_every: int = 10          # an observation start every this many frames, besides the keyframes
-    merge_m: float = 0.0         # > 0: a rest keyframe that the next rest keyframe corrects by less than this is dropped
+    merge_m: float = 0.0         # > 0: a rest keyframe that the next rest keyframe corrects by less than this...
+    merge_deg: float = 5.0       # ...and turns by less than this is dropped (a turn in place is a motion of its own)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -105,17 +106,27 @@ def find_keyframes(gripper_open: np.ndarray, arm_velocities: np.ndarray,
                     and {"gripper", "last"} & set(following.reasons))]
 
 
-def merge_refinements(keyframes: list[KeyframeEvent], tcp_positions: np.ndarray, merge_m: float) -> list[KeyframeEvent]:
+def merge_refinements(keyframes: list[KeyframeEvent], tcp_poses: np.ndarray, merge_m: float,
+                      merge_deg: float = 5.0) -> list[KeyframeEvent]:
     """Drop each rest keyframe that the following rest keyframe (same gripper state: nothing happened
-    between them) moves by less than `merge_m`: a scripted expert's re-aiming in small steps (25, 10,
-    3, 1 mm before an insertion) becomes one keyframe, its last, so that the observation before an
-    insertion has one next keyframe, not a choice between another correction and the insertion."""
+    between them) moves by less than `merge_m` and turns by less than `merge_deg`: a scripted expert's
+    re-aiming in small steps (25, 10, 3, 1 mm and 0.2-2 degrees before an insertion) becomes one
+    keyframe, its last, so that the observation before an insertion has one next keyframe, not a choice
+    between another correction and the insertion. A turn in place (lift_peg_upright's 36 degrees at 4
+    mm) is a motion of its own and stays. `tcp_poses` [T, 7]: x y z qx qy qz qw."""
     if merge_m <= 0:
         return keyframes
+    from scipy.spatial.transform import Rotation
+
+    def small(a: int, b: int) -> bool:
+        turn = Rotation.from_quat(tcp_poses[a, 3:]).inv() * Rotation.from_quat(tcp_poses[b, 3:])
+        return (np.linalg.norm(tcp_poses[b, :3] - tcp_poses[a, :3]) < merge_m
+                and np.degrees(turn.magnitude()) < merge_deg)
+
     kept = []
     for k, following in zip(keyframes, keyframes[1:] + [None]):
         refined = (following is not None and k.reasons == ("stopped",) and following.reasons == ("stopped",)
-                   and np.linalg.norm(tcp_positions[following.frame] - tcp_positions[k.frame]) < merge_m)
+                   and small(k.frame, following.frame))
         if not refined:
             kept.append(k)
     return kept
