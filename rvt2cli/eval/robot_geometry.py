@@ -14,6 +14,7 @@ below `pad` (a slightly larger region than the exact offset surface at the hull'
 which errs on the side of clearing). The same code serves a real robot: its URDF and joint state.
 """
 
+import functools
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,6 +79,7 @@ class RobotGeometry:
         self.hulls, self.rides_with_tcp = hulls, rides_with_tcp
 
     @staticmethod
+    @functools.cache  # every evaluation episode builds an executor; the meshes load once per process
     def from_urdf(urdf: str | Path, last_arm_joint: str) -> "RobotGeometry":
         """`last_arm_joint`: the links after it (the hand, fingers, a wrist camera) move with the TCP."""
         urdf = Path(urdf)
