@@ -100,6 +100,7 @@ while [ $# -gt 0 ]; do
   merged)  # a copy of the demos and held-out demos whose keyframe refinements under MERGE_MM are merged
     t=$(clock)
     for d in demos heldout; do
+      [ -d "$W/$d" ] || continue
       rm -rf "$W/${d}_merged" && cp -r "$W/$d" "$W/${d}_merged"
       "${RVT2[@]}" extract-keyframes "$W/${d}_merged" --merge-refinements "${MERGE_MM:-30}" | tail -1
     done

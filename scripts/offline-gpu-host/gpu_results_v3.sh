@@ -11,6 +11,8 @@
 # On a GPU machine without network access (pack_gpu_wheels.sh, gpu_onebox.sh beside this script), one
 # command per step: `stash` carrying each .gpu/site.part.* piece but the last, then `start` carrying the
 # last piece and .gl, then `collect` until it reports everything (each waits up to 9 minutes).
+# `start2` / `collect2` (a second machine): the merged model again after the merge rule learned to keep
+# turns in place (8 tasks x 25 demos, 1,200 steps, 30 evaluation seeds per task: what fitted the time left).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root
 export WORKERS=${WORKERS:-14}
@@ -38,9 +40,19 @@ case ${1:-} in
     WAIT_S=100000 bash $onebox wait kept
     next merged "$W/demos_merged" kept "$W/heldout"
     RUN=merged OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline ;;
+  start2)  # a second machine: the merged-refinements model again, with the rule that keeps turns in place
+    bash $onebox stash setup
+    bash $onebox bg chain "$self" chain2 ;;
+  chain2)
+    bash $onebox record merged
+    RUN=merged2 DATA=$W/demos_merged TRAIN_ARGS=$COMPILE bash $onebox train
+    RUN=merged2 EVAL_EPISODES=${EVAL_EPISODES_2:-30} bash $onebox eval ;;
+  collect2)
+    WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
+    RUNS=merged2 bash $onebox results ;;
   collect)
     WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
     RUNS="kept merged" bash $onebox results ;;
   all) bash $onebox setup && bash "$self" chain && bash "$self" collect ;;
-  *) echo "usage: $0 stash|start|collect|all" >&2; exit 2 ;;
+  *) echo "usage: $0 stash|start|collect|start2|collect2|all" >&2; exit 2 ;;
 esac
