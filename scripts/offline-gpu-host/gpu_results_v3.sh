@@ -12,7 +12,7 @@
 # command per step: `stash` carrying each .gpu/site.part.* piece but the last, then `start` carrying the
 # last piece and .gl, then `collect` until it reports everything (each waits up to 9 minutes).
 # `start2` / `collect2` (a second machine): the merged model again after the merge rule learned to keep
-# turns in place (8 tasks x 25 demos, 1,200 steps, 30 evaluation seeds per task: what fitted the time left).
+# turns in place (8 tasks x 25 demos, 1,200 steps, 30 evaluation seeds per task).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root
 export WORKERS=${WORKERS:-14}
