@@ -129,6 +129,7 @@ class Executor:
         self.gripper = 1.0  # open, as every episode starts
         self.gripper_close = gripper_close
         self.steps = 0
+        self.start_collided = False  # the planner's start state touched its cloud during this keyframe's planning
         self.step_budget = step_budget
         self.on_step = None  # called after every env.step (videos, rollout recording)
 
