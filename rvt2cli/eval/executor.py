@@ -94,6 +94,19 @@ class StepBudgetExhausted(Exception):
     pass
 
 
+def _transform(position, quaternion_xyzw) -> np.ndarray:
+    """4x4 rigid transform."""
+    transform = np.eye(4)
+    transform[:3, :3] = Rotation.from_quat(quaternion_xyzw).as_matrix()
+    transform[:3, 3] = position
+    return transform
+
+
+def _mplib_transform(pose: np.ndarray) -> np.ndarray:
+    """4x4 transform of a pose as mplib writes it: [x y z qw qx qy qz]."""
+    return _transform(pose[:3], [*pose[4:7], pose[3]])
+
+
 def pose_error(pose7: np.ndarray, target: Keyframe) -> tuple[float, float]:
     """(position error in m, rotation error in degrees) of a TCP pose [x y z qx qy qz qw] to a keyframe."""
     position = float(np.linalg.norm(np.asarray(pose7[:3]) - np.asarray(target.position)))
@@ -160,32 +173,23 @@ class Executor:
         qx, qy, qz, qw = target.quaternion
         return np.array([*target.position, qw, qx, qy, qz])
 
+    def _world_pose(self, link_index: int) -> np.ndarray:
+        """4x4 world pose of a link after `pinocchio_model.compute_forward_kinematics` (which works in the
+        robot's base frame)."""
+        base = _mplib_transform(self.planner.robot.get_base_pose())
+        return base @ _mplib_transform(self.planner.pinocchio_model.get_link_pose(link_index))
+
     def link_poses(self, qpos: np.ndarray) -> dict[str, np.ndarray]:
         """World pose (4x4) of every link with collision geometry, at the full joint vector `qpos`."""
-        model = self.planner.pinocchio_model
-        model.compute_forward_kinematics(np.asarray(qpos, dtype=np.float64))
-        base = self.planner.robot.get_base_pose()
-        world = np.eye(4)
-        world[:3, :3] = Rotation.from_quat([*base[4:7], base[3]]).as_matrix()
-        world[:3, 3] = base[:3]
-        poses = {}
-        for name in self.geometry.hulls:
-            pose = model.get_link_pose(self.planner.link_name_2_idx[name])
-            local = np.eye(4)
-            local[:3, :3] = Rotation.from_quat([*pose[4:7], pose[3]]).as_matrix()
-            local[:3, 3] = pose[:3]
-            poses[name] = world @ local
-        return poses
+        self.planner.pinocchio_model.compute_forward_kinematics(np.asarray(qpos, dtype=np.float64))
+        return {name: self._world_pose(self.planner.link_name_2_idx[name]) for name in self.geometry.hulls}
 
     def clear_cloud(self, scene_points: np.ndarray, target: Keyframe) -> np.ndarray:
         """The scene points a plan to `target` must avoid: not those at the robot as it stands, nor
         those at the gripper's links where they will stand at the target."""
         start = self.link_poses(self.qpos())
-        tcp_now, tcp_goal = np.eye(4), np.eye(4)
         now = self.tcp_pose()
-        tcp_now[:3, :3], tcp_now[:3, 3] = Rotation.from_quat(now[3:]).as_matrix(), now[:3]
-        tcp_goal[:3, :3], tcp_goal[:3, 3] = Rotation.from_quat(target.quaternion).as_matrix(), target.position
-        move = tcp_goal @ np.linalg.inv(tcp_now)
+        move = _transform(target.position, target.quaternion) @ np.linalg.inv(_transform(now[:3], now[3:]))
         goal = {name: move @ pose for name, pose in start.items() if name in self.geometry.rides_with_tcp}
         near = self.geometry.near(scene_points, start, CLEARANCE) | self.geometry.near(scene_points, goal, CLEARANCE)
         return scene_points[~near]
@@ -235,13 +239,9 @@ class Executor:
         q, _, _ = model.compute_IK_CLIK_JL(self.tcp_index, goal, self.qpos().astype(np.float64), limits[:, 0], limits[:, 1],
                                            max_iter=3000, damp=1e-3)
         model.compute_forward_kinematics(q)
-        base_pose = model.get_link_pose(self.tcp_index)   # [x y z qw qx qy qz] in the robot's base frame
-        base = self.planner.robot.get_base_pose()
-        base_rot = Rotation.from_quat([*base[4:7], base[3]])
-        position = base_rot.apply(base_pose[:3]) + base[:3]
-        quaternion = (base_rot * Rotation.from_quat([*base_pose[4:7], base_pose[3]])).as_quat()
-        nearest = Keyframe.from_pose([*position, *quaternion], target.gripper_open, target.ignore_collisions,
-                                     target.frame, target.reasons)
+        pose = self._world_pose(self.tcp_index)
+        nearest = Keyframe.from_pose([*pose[:3, 3], *Rotation.from_matrix(pose[:3, :3]).as_quat()], target.gripper_open,
+                                     target.ignore_collisions, target.frame, target.reasons)
         position_error, rotation_error = pose_error(nearest.pose, target)
         if position_error > REACH_SLACK_M or rotation_error > REACH_SLACK_DEG:
             return None

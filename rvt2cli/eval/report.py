@@ -15,7 +15,7 @@ import numpy as np
 from rvt2cli.atomic import atomic_open
 from rvt2cli.errors import UserError
 from rvt2cli.eval.rollout import FAILURE_KINDS, Outcome
-from rvt2cli.eval.taxonomy import REASONS, count_reasons, failure_reason, insertion_gap_mm
+from rvt2cli.eval.taxonomy import REASONS, closest_gap_mm, count_reasons, failure_reason
 from rvt2cli.tasks import get_task
 
 SOURCES = ("policy", "oracle")
@@ -75,7 +75,7 @@ def summarize(records: list[dict], insertion: bool = False) -> dict:
                                            for r in records),
         "failures": {kind: sum(r["failure"] == kind for r in records) for kind in FAILURE_KINDS},
         "reasons": count_reasons(records, insertion),
-        "insertion_gap_mm": _percentiles([g for g in (insertion_gap_mm(r) for r in records if not r["success"]) if g is not None]),
+        "insertion_gap_mm": _percentiles([g for g in (closest_gap_mm(r) for r in records if not r["success"]) if g is not None]),
         "unreached_per_episode": sum(r["unreached_keyframes"] for r in records) / n if n else 0.0,
         "nearest_pose_keyframes": sum(s.get("nearest", False) for r in records for s in r.get("steps", [])),
         "start_in_collision_keyframes": sum(s.get("start_in_collision", False) for r in records for s in r.get("steps", [])),

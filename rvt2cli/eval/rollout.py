@@ -81,10 +81,10 @@ class KeyframeSource:
         raise NotImplementedError
 
 
-def insertion_gap_mm(env) -> float | None:
+def insertion_gap_mm(env, info: dict) -> float | None:
     """How far an insertion task's object is from success (0 when inside the task's tolerance), from
-    what the ManiSkill task's own success check measures; None for a task that measures no such thing."""
-    info = env.unwrapped.evaluate()
+    what the ManiSkill task's own success check measures (`info`: its `evaluate()`); None for a task that
+    measures no such thing."""
     if "peg_head_pos_at_hole" in info:   # PegInsertionSide: the peg's head in the hole's frame, x into the hole
         depth, across = info["peg_head_pos_at_hole"][0, 0].item(), info["peg_head_pos_at_hole"][0, 1:].abs().max().item()
         radius = env.unwrapped.box_hole_radii[0].item()
@@ -130,9 +130,10 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
             scene_points = None if keyframe.ignore_collisions else _collision_points(env, frames, segmentation, task.scene_bounds)
             frame = executor.steps
             reach = executor.execute(keyframe, scene_points)
+            info = env.unwrapped.evaluate()
             outcome.steps.append(Step(frame=frame, keyframe=keyframe, reach=reach, retry=retry, held=bool(held_objects(env)),
-                                      gap_mm=insertion_gap_mm(env) if task.insertion else None))
-            if bool(env.unwrapped.evaluate()["success"].item()):
+                                      gap_mm=insertion_gap_mm(env, info) if task.insertion else None))
+            if bool(info["success"].item()):
                 outcome.success = True
                 break
             retry = 0 if reach.reached else retry + 1

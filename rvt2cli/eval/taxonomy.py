@@ -50,7 +50,7 @@ def failure_reason(record: dict, insertion: bool) -> str | None:
     return "budget_spent" if record["failure"] == "budget_exhausted" else "source_stopped"
 
 
-def insertion_gap_mm(record: dict) -> float | None:
+def closest_gap_mm(record: dict) -> float | None:
     """The smallest gap to success a held object reached in this episode (mm), if the task measures one."""
     gaps = [s["gap_mm"] for s in _reached(record) if s.get("held") and s.get("gap_mm") is not None]
     return min(gaps) if gaps else None

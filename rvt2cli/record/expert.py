@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import gymnasium as gym
 import numpy as np
 
-from rvt2cli.record.scene import robot_contacts, robot_proximity, robot_state, sim_state
+from rvt2cli.record.scene import robot_contacts, robot_state, sim_state
 from rvt2cli.runtime import seed_everything
 
 
@@ -25,7 +25,7 @@ class Frame:
     contacts: list[str]
     gripper_command: float    # command in effect: the last action's gripper value (+1 open at the start)
     action: list[float] | None = None  # the action applied at this frame; None at the last frame
-    near: list[str] = field(default_factory=list)  # scene bodies within 5 mm (robot_proximity)
+    near: list[str] = field(default_factory=list)  # scene bodies within 5 mm (robot_contacts)
 
 
 @dataclass
@@ -45,9 +45,9 @@ class RecordingWrapper(gym.Wrapper):
         self.max_frames = max_frames
 
     def _record(self, gripper_command: float) -> None:
-        self.frames.append(Frame(state=robot_state(self.env), sim=sim_state(self.env),
-                                 contacts=robot_contacts(self.env), gripper_command=gripper_command,
-                                 near=robot_proximity(self.env)))
+        touched, near = robot_contacts(self.env)
+        self.frames.append(Frame(state=robot_state(self.env), sim=sim_state(self.env), contacts=touched,
+                                 gripper_command=gripper_command, near=near))
 
     def reset(self, **kwargs):
         out = self.env.reset(**kwargs)

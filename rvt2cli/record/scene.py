@@ -90,12 +90,10 @@ def _body_name(entity_name: str) -> str:
     return re.sub(r"_\d+$", "", re.sub(r"^scene-\d+_", "", entity_name))
 
 
-def _contact_pairs(env) -> list[tuple[str, str]]:
-    pairs = []
-    for contact in env.unwrapped.scene.get_contacts():
-        if sum(float(np.linalg.norm(p.impulse)) for p in contact.points) > CONTACT_IMPULSE:
-            pairs.append((contact.bodies[0].entity.name, contact.bodies[1].entity.name))
-    return pairs
+def _contact_pairs(contacts) -> list[tuple[str, str]]:
+    """The (entity, entity) pairs of these PhysX contacts that carry force."""
+    return [(c.bodies[0].entity.name, c.bodies[1].entity.name) for c in contacts
+            if sum(float(np.linalg.norm(p.impulse)) for p in c.points) > CONTACT_IMPULSE]
 
 
 def _held(env, pairs) -> set[str]:
@@ -112,28 +110,24 @@ def _held(env, pairs) -> set[str]:
 
 def held_objects(env) -> set[str]:
     """Names (as robot_contacts gives them) of the objects in the gripper."""
-    return {_body_name(n) for n in _held(env, _contact_pairs(env))}
+    return {_body_name(n) for n in _held(env, _contact_pairs(env.unwrapped.scene.get_contacts()))}
 
 
-def robot_contacts(env) -> list[str]:
-    """Scene bodies touched by the robot or by an object the robot holds (between both fingers)."""
-    pairs = _contact_pairs(env)
+def robot_contacts(env, margin: float = NEAR_M) -> tuple[list[str], list[str]]:
+    """(touched, near): the scene bodies touched by the robot or by an object it holds (between both
+    fingers), and those within `margin` of either, touching ones included. PhysX reports contact points,
+    with their separation, for shapes closer than its contact offset (2 cm in ManiSkill scenes), so one
+    contact query finds both, whether or not a body touches."""
+    contacts = env.unwrapped.scene.get_contacts()
+    pairs = _contact_pairs(contacts)
     grip = {link.name for link in env.unwrapped.agent.robot.get_links()} | _held(env, pairs)
     touched = {b for a, b in pairs if a in grip and b not in grip} | {a for a, b in pairs if b in grip and a not in grip}
-    return sorted({_body_name(n) for n in touched})
-
-
-def robot_proximity(env, margin: float = NEAR_M) -> list[str]:
-    """Scene bodies within `margin` of the robot or of an object it holds, touching ones included.
-    PhysX reports contact points, with their separation, for shapes closer than its contact offset
-    (2 cm in ManiSkill scenes), so anything nearer than that is found whether or not it touches."""
-    grip = {link.name for link in env.unwrapped.agent.robot.get_links()} | _held(env, _contact_pairs(env))
     near = set()
-    for contact in env.unwrapped.scene.get_contacts():
+    for contact in contacts:
         a, b = contact.bodies[0].entity.name, contact.bodies[1].entity.name
         if (a in grip) != (b in grip) and contact.points and min(p.separation for p in contact.points) <= margin:
-            near.add(_body_name(b if a in grip else a))
-    return sorted(near)
+            near.add(b if a in grip else a)
+    return sorted({_body_name(n) for n in touched}), sorted({_body_name(n) for n in near})
 
 
 def sim_state(env) -> dict:
