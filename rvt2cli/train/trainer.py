@@ -75,8 +75,9 @@ def check_run_folder(run_dir: Path, resume: bool) -> None:
     """A fresh run goes into a new or empty folder, or one of a run stopped before its first checkpoint;
     a resumed run needs a checkpoint. One line otherwise; nothing of the user's is written over."""
     has_checkpoint = (run_dir / "last").exists()
-    if run_dir.is_dir() and not has_checkpoint and _own_files(run_dir):
-        raise UserError(f"{run_dir}: exists and is not an rvt2 run folder (it holds {_own_files(run_dir)[0]}); "
+    foreign = _own_files(run_dir) if run_dir.is_dir() and not has_checkpoint else []
+    if foreign:
+        raise UserError(f"{run_dir}: exists and is not an rvt2 run folder (it holds {foreign[0]}); "
                         "train into a new or empty --out")
     if not resume and has_checkpoint:
         raise UserError(f"{run_dir}: already holds a run; pass --resume to continue it or choose another --out")
