@@ -11,7 +11,7 @@ from rvt2cli.model.locate import gaussian_targets, heatmaps_to_point
 from rvt2cli.model.loss import policy_loss
 from rvt2cli.model.mvt import MultiViewTransformer
 from rvt2cli.model.policy import Observation, RVT2Policy
-from rvt2cli.model.rotation import angle_between, bins_to_quaternion, quaternion_to_bins
+from rvt2cli.model.rotation import angle_between, bins_to_quaternion, decode_euler, euler_to_quaternion, quaternion_to_bins
 from rvt2cli.render.cameras import cube_rig, zoom_rig
 from rvt2cli.render.channels import NUM_CHANNELS
 from rvt2cli.train.lamb import Lamb
@@ -144,6 +144,9 @@ def test_policy_forward_backward_and_predict_shapes(cfg):
     if cfg is SMALL:
         pred = policy.predict(obs)
         assert pred.position.shape == (b, 3) and pred.rot_bins.shape == (b, 3) and pred.gripper_open.dtype == torch.bool
+        # the decoded rotation lies within its best bins (half a bin per axis at most)
+        centres = bins_to_quaternion(pred.rot_bins.numpy(), cfg.rotation_bins)
+        assert np.all(angle_between(pred.quaternion.numpy(), centres) <= 2.5 * 3 ** 0.5 + 1e-3)
 
 
 def test_loss_decreases_on_a_fixed_batch():
@@ -192,3 +195,25 @@ def test_compiled_network_matches_eager():
     for key in want["action"]:
         assert torch.allclose(want["action"][key], got["action"][key], rtol=1e-4, atol=1e-4)
     assert torch.equal(eager.predict(obs).rot_bins, compiled.predict(obs).rot_bins)
+
+
+def test_rotation_decoding_places_the_angle_within_its_bin():
+    """A bin scored alone decodes to its centre; a neighbour scored as high moves the angle to their
+    shared edge; neighbours wrap around +-180 degrees; the torch quaternion matches scipy's."""
+    bins = 72
+    def scores(*pairs):
+        s = torch.full((1, bins), -30.0)
+        for index, value in pairs:
+            s[0, index] = value
+        return s
+    alone, edge, wrapped = scores((10, 5.0)), scores((10, 5.0), (11, 5.0)), scores((0, 5.0), (71, 5.0))
+    angles = torch.rad2deg(decode_euler([alone, edge, wrapped]))[0].numpy()
+    assert angles[0] == pytest.approx(-180 + 10.5 * 5, abs=1e-3)          # bin 10's centre
+    assert angles[1] == pytest.approx(-180 + 11 * 5, abs=1e-3)            # the edge between bins 10 and 11
+    assert angles[2] == pytest.approx(-180, abs=1e-3)                     # bins 0 and 71 share -180 = +180
+    rng = np.random.default_rng(0)
+    euler = rng.uniform(-170, 170, size=(16, 3))
+    from scipy.spatial.transform import Rotation
+    expected = Rotation.from_euler("xyz", euler, degrees=True).as_quat()
+    ours = euler_to_quaternion(torch.deg2rad(torch.tensor(euler))).numpy()
+    assert np.all(angle_between(ours, expected) < 1e-3)

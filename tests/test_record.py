@@ -74,9 +74,10 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
     # pre-insert: aligned with the hole, the final insert moves the peg along the hole axis
     pre, last = np.array(kfs[-2].position), np.array(kfs[-1].position)
     assert 0.02 < np.linalg.norm(last - pre) < 0.15
-    # the grasp ends around the peg and the insertion in the box (rule v3: within 5 mm counts);
-    # the reach above the peg ends in free space
-    assert kfs[-1].ignore_collisions and kfs[1].ignore_collisions and not kfs[0].ignore_collisions
+    # the insertion ends in the box (rule v3: within 5 mm counts); the reach above the peg ends in free
+    # space. (The grasp's flag depends on how closely the open fingers pass the peg in each demo:
+    # benchmarks/label_bench.py counts it.)
+    assert kfs[-1].ignore_collisions and not kfs[0].ignore_collisions
     # samples start at frame 0 and point at the next keyframe
     samples = annotation.keyframes.samples
     assert (samples[0].obs_frame, samples[0].keyframe) == (0, 0)
@@ -137,3 +138,22 @@ def test_an_episode_depends_on_its_seed_not_on_the_episodes_before_it():
         runs.append(np.array([f.state["joint_positions"] for f in run.frames]))
         env.close()
     assert runs[0].shape == runs[1].shape and np.array_equal(runs[0], runs[1])
+
+
+def test_own_insert_peg_expert_succeeds_where_maniskills_does_not():
+    """ManiSkill's expert inserts towards a pose computed before the grasp, slanted against the hole by
+    however the peg sits in the hand, with screw motions that leave the straight line by millimetres,
+    and fails seed 10002 (the peg meets the box's face); the task's expert (rvt2cli.record.experts)
+    re-aims from the measured peg and succeeds. Both are deterministic."""
+    from rvt2cli.record.expert import run_expert
+    from rvt2cli.record.scene import make_env
+    from rvt2cli.tasks import get_task
+
+    task = get_task("insert_peg")
+    assert task.expert == "rvt2cli.record.experts:insert_peg"
+    env = make_env(task, cameras=("front",), image_size=32)
+    theirs = run_expert(env, "mani_skill.examples.motionplanning.panda.solutions:solvePegInsertionSide", 10002, task.max_steps)
+    head_theirs = env.unwrapped.evaluate()["peg_head_pos_at_hole"][0, 0].item()
+    ours = run_expert(env, task.expert, 10002, task.max_steps)
+    assert (theirs.status, ours.status) == ("failed", "success")
+    assert head_theirs < -0.09  # ManiSkill's peg stopped at the face, a peg's length from success

@@ -244,3 +244,26 @@ def test_loop_bench_times_the_command_beside_its_step(tiny_dataset, tmp_path):
     variants = json.loads(out.read_text())["variants"]
     assert {"rvt2 train", "synthetic", "real", "loop", "batch_only"} <= set(variants)
     assert all(v["samples_per_s"] > 0 for k, v in variants.items() if k != "batch_only")
+
+
+def test_rotation_bins_set_the_policys_rotation_resolution(tiny_dataset, tmp_path, cli):
+    """--rotation-bins 360: the heads score 1-degree bins, the checkpoint keeps them, a resumed run may
+    not change them."""
+    from rvt2cli.model.rotation import angle_between, bins_to_quaternion, quaternion_to_bins
+
+    run_dir = tmp_path / "fine"
+    train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), steps=2, save_every=2, rotation_bins=360, **TINY_TRAIN),
+          say=lambda *_: None)
+    policy, ckpt = load_policy(run_dir)
+    assert ckpt.config.rotation_bins == 360 and policy.cfg.rotation_bins == 360
+    head = next(m for m in policy.modules() if hasattr(m, "rot_z"))
+    assert head.rot_x.out_features == head.rot_z.out_features == 360
+    quaternion = torch.nn.functional.normalize(torch.tensor([0.1, 0.7, 0.2, 0.6]), dim=0).numpy()
+    centre = bins_to_quaternion(quaternion_to_bins(quaternion, 360), 360)
+    coarse = bins_to_quaternion(quaternion_to_bins(quaternion, 72), 72)
+    assert angle_between(centre[None], quaternion[None])[0] < angle_between(coarse[None], quaternion[None])[0]
+    assert angle_between(centre[None], quaternion[None])[0] <= 0.5 * 3 ** 0.5 + 1e-6  # half a degree per axis at most
+    r = cli("train", "--data", tiny_dataset, "--out", run_dir, "--resume", "--rotation-bins", "72", "--steps", "4")
+    assert_one_line_error(r, "--rotation-bins 72 differs from the run's 360")
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "bad", "--config", "small", "--rotation-bins", "2")
+    assert r.returncode != 0 and "below the minimum 4" in r.stderr

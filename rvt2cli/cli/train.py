@@ -19,6 +19,9 @@ def register(subparsers) -> None:
                    help="episode files or folders of them, or one sample cache written by `rvt2 pack-samples`")
     p.add_argument("--out", required=True, help="run folder (checkpoints, train.csv, validation.csv, tb/)")
     p.add_argument("--config", help="model config: rvt2 (the paper, default), small (CPU), rvt (RVT-1-like ablation)")
+    p.add_argument("--rotation-bins", type=integer(4, 720), metavar="N",
+                   help="Euler-angle bins per axis (default: the config's 72, i.e. 5 degrees, as the paper; "
+                        "360 gives 1 degree, which a 3 mm insertion needs: benchmarks/precision_budget.py)")
     p.add_argument("--steps", type=COUNT, help=f"optimizer steps (default {T.steps})")
     p.add_argument("--batch-size", type=COUNT, help=f"per device (default {T.batch_size}, as the paper)")
     p.add_argument("--lr", type=POSITIVE, help="peak learning rate (default 1.25e-5 x total batch, as the paper)")

@@ -10,7 +10,7 @@ from rvt2cli.keyframes.extract import annotate, label_keyframes
 from rvt2cli.keyframes.rule import KeyframeParams
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.model.observation import Observation, observe, proprio_vector
-from rvt2cli.model.rotation import bins_to_quaternion, yaw_rotate_quaternion
+from rvt2cli.model.rotation import yaw_rotate_quaternion
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.record.expert import run_expert
 from rvt2cli.robot import RobotFacts
@@ -48,7 +48,7 @@ class PolicySource(KeyframeSource):
     def predict(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Keyframe:
         pred = self.policy.predict(self.observation(xyz, rgb, gripper_open, finger_positions, keyframes_done))
         position = self.workspace.to_world(pred.position[0].double().cpu()).numpy()
-        quaternion = bins_to_quaternion(pred.rot_bins[0].cpu().numpy(), self.cfg.rotation_bins)
+        quaternion = pred.quaternion[0].double().cpu().numpy()
         return Keyframe.from_pose([*position, *quaternion], bool(pred.gripper_open[0]), bool(pred.ignore_collisions[0]))
 
     def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry: int = 0) -> Keyframe:

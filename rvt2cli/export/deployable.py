@@ -9,7 +9,6 @@ Rendering (the pure-torch reference renderer), both stages and the 3D argmax are
 observation contract's world -> cube mapping (`rvt2cli.model.observation`), computed from scene_bounds.
 """
 
-import math
 
 import torch
 from torch import nn
@@ -17,20 +16,6 @@ from torch import nn
 from rvt2cli.model.observation import LANG_DIM, Observation, proprio_vector
 from rvt2cli.model.policy import RVT2Policy
 from rvt2cli.render.workspace import center_and_half
-
-
-def euler_bins_to_quaternion(bins: torch.Tensor, num_bins: int) -> torch.Tensor:
-    """[B, 3] xyz Euler bins (extrinsic, bin centres) -> [B, 4] quaternions x y z w (torch, exportable)."""
-    angles = -math.pi + (bins.to(torch.float32) + 0.5) * (2 * math.pi / num_bins)
-    half = angles / 2
-    c, s = torch.cos(half), torch.sin(half)
-    cx, cy, cz, sx, sy, sz = c[:, 0], c[:, 1], c[:, 2], s[:, 0], s[:, 1], s[:, 2]
-    # q = q_z * q_y * q_x (extrinsic x, then y, then z)
-    w = cz * cy * cx + sz * sy * sx
-    x = cz * cy * sx - sz * sy * cx
-    y = cz * sy * cx + sz * cy * sx
-    z = sz * cy * cx - cz * sy * sx
-    return torch.stack([x, y, z, w], dim=-1)
 
 
 class DeployablePolicy(nn.Module):
@@ -43,8 +28,9 @@ class DeployablePolicy(nn.Module):
         obs = Observation(points=(xyz - center) / half, rgb=rgb, num_points=num_points, proprio=proprio, lang=lang)
         pred = self.policy.predict(obs)
         position = pred.position * half + center
-        quaternion = euler_bins_to_quaternion(pred.rot_bins, self.policy.cfg.rotation_bins)
-        return position, quaternion, pred.gripper_open.float(), pred.ignore_collisions.float(), pred.rot_bins
+        # detached: a traced (TorchScript) module does not keep predict()'s no_grad, and the rotation now comes
+        # from the scores, not from integer bins
+        return position, pred.quaternion.detach(), pred.gripper_open.float(), pred.ignore_collisions.float(), pred.rot_bins
 
 
 INPUT_NAMES = ["xyz", "rgb", "num_points", "proprio", "lang", "scene_bounds"]

@@ -59,7 +59,7 @@ def _input_spec(cfg, max_points: int) -> dict:
             "quaternion": {"shape": [1, 4], "dtype": "float32", "meaning": "TCP orientation, x y z w"},
             "gripper_open": {"shape": [1], "dtype": "float32", "meaning": "1 open, 0 closed"},
             "ignore_collisions": {"shape": [1], "dtype": "float32", "meaning": "1: plan without collision avoidance"},
-            "rotation_bins": {"shape": [1, 3], "dtype": "int64", "meaning": "Euler xyz bins (5 degrees)"},
+            "rotation_bins": {"shape": [1, 3], "dtype": "int64", "meaning": f"Euler xyz bins ({360 / cfg.rotation_bins:g} degrees, {cfg.rotation_bins} per axis)"},
         },
     }
 

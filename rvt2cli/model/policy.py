@@ -18,6 +18,7 @@ from rvt2cli.model.heatmap import make_heatmap_head
 from rvt2cli.model.locate import heatmaps_to_point
 from rvt2cli.model.mvt import MultiViewTransformer
 from rvt2cli.model.observation import Observation
+from rvt2cli.model.rotation import decode_euler, euler_to_quaternion
 from rvt2cli.render.cameras import Cameras, cube_rig, project, zoom_rig
 from rvt2cli.render.channels import network_images
 
@@ -34,7 +35,8 @@ class StageOutput:
 @dataclass
 class Prediction:
     position: torch.Tensor    # [B, 3] cube coordinates
-    rot_bins: torch.Tensor    # [B, 3]
+    rot_bins: torch.Tensor    # [B, 3] the best bin per Euler axis
+    quaternion: torch.Tensor  # [B, 4] x y z w: the bins refined by their neighbours' scores (rotation.decode_euler)
     gripper_open: torch.Tensor       # [B] bool
     ignore_collisions: torch.Tensor  # [B] bool
     stage1_position: torch.Tensor    # [B, 3]
@@ -141,6 +143,8 @@ class RVT2Policy(nn.Module):
             outputs.append(self.run_stage(1, obs, stage1))
             position = self.locate(1, outputs[1], stage1)
         action = self.action(self.action_features(outputs[-1], position))
-        rot_bins = torch.stack([action["rot_x"].argmax(-1), action["rot_y"].argmax(-1), action["rot_z"].argmax(-1)], dim=-1)
-        return Prediction(position=position, rot_bins=rot_bins, gripper_open=action["gripper"].argmax(-1) == 1,
+        scores = [action["rot_x"], action["rot_y"], action["rot_z"]]
+        rot_bins = torch.stack([s.argmax(-1) for s in scores], dim=-1)
+        return Prediction(position=position, rot_bins=rot_bins, quaternion=euler_to_quaternion(decode_euler(scores)),
+                          gripper_open=action["gripper"].argmax(-1) == 1,
                           ignore_collisions=action["collision"].argmax(-1) == 1, stage1_position=stage1, stages=outputs)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from rvt2cli.model.rotation import angle_between, bins_to_quaternion
+from rvt2cli.model.rotation import angle_between
 from rvt2cli.train.batches import PackedSamples, make_batch
 
 
@@ -56,7 +56,7 @@ def score_predictions(policy, packed: PackedSamples, indices=None, batch_size: i
         metres = batch.half[:, None] * 1000.0
         parts["stage1_mm"].append((pred.stage1_position.float() - batch.position).norm(dim=-1).cpu().numpy() * metres[:, 0])
         parts["stage2_mm"].append((pred.position.float() - batch.position).norm(dim=-1).cpu().numpy() * metres[:, 0])
-        parts["rotation_deg"].append(angle_between(bins_to_quaternion(pred.rot_bins.cpu().numpy(), cfg.rotation_bins), batch.quaternion))
+        parts["rotation_deg"].append(angle_between(pred.quaternion.float().cpu().numpy(), batch.quaternion))
         parts["gripper_ok"].append((pred.gripper_open.long() == batch.gripper).cpu().numpy())
         parts["collision_ok"].append((pred.ignore_collisions.long() == batch.collision).cpu().numpy())
         parts["task"].append(packed.task[idx])

@@ -15,7 +15,7 @@ import csv
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -110,10 +110,16 @@ def resolve_options(opts: TrainOptions) -> tuple[TrainOptions, Checkpoint | None
             raise UserError(f"--{name.replace('_', '-')} {getattr(opts, name)!r} differs from the run's "
                             f"{getattr(stored, name)!r} in {run_dir}; a resumed run keeps its options: "
                             "leave the flag out, or train into a new --out")
-    if ckpt.config != get_config(opts.config):
+    if ckpt.config != model_config(opts):
         raise UserError(f"{run_dir}: was trained with config '{ckpt.config.name}'; resume with --config "
                         f"{ckpt.config.name} or train into a new --out")
     return opts, ckpt
+
+
+def model_config(opts: TrainOptions) -> ModelConfig:
+    """The named config, with the run's own rotation resolution where it sets one."""
+    cfg = get_config(opts.config)
+    return replace(cfg, rotation_bins=opts.rotation_bins) if opts.rotation_bins else cfg
 
 
 # --- data --------------------------------------------------------------------------------------------
@@ -322,7 +328,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
         torch.cuda.set_device(device)
     torch.manual_seed(opts.seed)
-    cfg: ModelConfig = get_config(opts.config)
+    cfg = model_config(opts)
     run_dir = Path(opts.out)
     opts, resume = resolve_options(opts)
     total_batch = opts.batch_size * world

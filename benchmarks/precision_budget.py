@@ -1,0 +1,120 @@
+"""How precise must a policy be? The oracle (the scripted expert's keyframes, run by `rvt2 eval`'s
+executor) with its keyframes degraded the way a policy's predictions are, on the same seeds:
+
+- `exact`: the keyframes as the expert reached them;
+- `rotN`: each keyframe's rotation snapped to the centre of its Euler-angle bin, N bins per axis, by the
+  functions the policy decodes its rotation with (`rvt2cli.model.rotation`): 72 is the paper's 5 degrees;
+- `posM`: each keyframe moved M mm in a random direction (seeded per episode).
+
+    python -m benchmarks.precision_budget [--tasks insert_peg,plug_charger] [--variants exact,rot72,rot360,pos2]
+                                          [--seeds 20] [--first-seed 10000] [--workers 2] [--json out.json]
+
+Per task and variant: success (Wilson 95% interval) and, for insertion tasks, the median closest gap to
+success of the failed episodes. Every episode is `rvt2cli.eval.rollout.run_episode`, the loop `rvt2 eval`
+runs.
+"""
+
+import argparse
+import json
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from benchmarks.machine import describe
+from rvt2cli.data.keyframes import Keyframe
+from rvt2cli.eval.report import wilson_interval
+from rvt2cli.eval.sources import OracleSource
+from rvt2cli.model.rotation import bins_to_quaternion, quaternion_to_bins
+
+
+@dataclass(frozen=True)
+class Degradation:
+    rotation_bins: int = 0       # > 0: snap rotations to bin centres
+    position_mm: float = 0.0     # > 0: move each keyframe this far in a random direction
+
+    @staticmethod
+    def parse(name: str) -> "Degradation":
+        if name == "exact":
+            return Degradation()
+        if name.startswith("rot"):
+            return Degradation(rotation_bins=int(name[3:]))
+        if name.startswith("pos"):
+            return Degradation(position_mm=float(name[3:]))
+        raise SystemExit(f"precision_budget: unknown variant {name!r} (exact, rotN, posM)")
+
+    def apply(self, keyframe: Keyframe, rng: np.random.Generator) -> Keyframe:
+        position, quaternion = np.asarray(keyframe.position, float), np.asarray(keyframe.quaternion, float)
+        if self.rotation_bins:
+            quaternion = bins_to_quaternion(quaternion_to_bins(quaternion, self.rotation_bins), self.rotation_bins)
+        if self.position_mm:
+            direction = rng.normal(size=3)
+            position = position + self.position_mm / 1000.0 * direction / np.linalg.norm(direction)
+        return Keyframe.from_pose([*position, *quaternion], keyframe.gripper_open, keyframe.ignore_collisions,
+                                  keyframe.frame, keyframe.reasons)
+
+
+class DegradedOracle(OracleSource):
+    def __init__(self, env, degradation: Degradation):
+        super().__init__(env)
+        self.degradation = degradation
+
+    def reset(self, task, seed, instruction):
+        super().reset(task, seed, instruction)
+        rng = np.random.default_rng(seed)
+        self.queue = [self.degradation.apply(k, rng) for k in self.queue]
+
+
+_envs: dict = {}
+
+
+def _episode(job: tuple[str, str, int]) -> dict:
+    from rvt2cli.eval.rollout import run_episode
+    from rvt2cli.record.scene import make_env
+    from rvt2cli.tasks import get_task
+
+    variant, task_name, seed = job
+    task = get_task(task_name)
+    env = _envs.setdefault(task_name, make_env(task))
+    outcome = run_episode(env, task, seed, DegradedOracle(env, Degradation.parse(variant)), task.instruction(seed)[0],
+                          step_budget=2 * task.max_steps)
+    gaps = [s.gap_mm for s in outcome.steps if s.gap_mm is not None and s.held]
+    return {"variant": variant, "task": task_name, "seed": seed, "success": outcome.success,
+            "failure": outcome.failure, "closest_gap_mm": min(gaps) if gaps else None}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", default="insert_peg,plug_charger")
+    parser.add_argument("--variants", default="exact,rot72,rot360,pos2")
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--first-seed", type=int, default=10_000)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--json", help="write results here")
+    args = parser.parse_args()
+    tasks, variants = args.tasks.split(","), args.variants.split(",")
+    for v in variants:
+        Degradation.parse(v)
+    jobs = [(v, t, args.first_seed + i) for t in tasks for v in variants for i in range(args.seeds)]
+    with ProcessPoolExecutor(args.workers) as pool:
+        episodes = list(pool.map(_episode, jobs))
+    rows = []
+    print("| task | variant | success (95% CI) | failed: median closest gap mm |\n|---|---|---|---|")
+    for t in tasks:
+        for v in variants:
+            mine = [e for e in episodes if e["task"] == t and e["variant"] == v]
+            wins = sum(e["success"] for e in mine)
+            lo, hi = wilson_interval(wins, len(mine))
+            gaps = [e["closest_gap_mm"] for e in mine if not e["success"] and e["closest_gap_mm"] is not None]
+            gap = float(np.median(gaps)) if gaps else None
+            rows.append({"task": t, "variant": v, "successes": wins, "episodes": len(mine), "ci95": [lo, hi],
+                         "median_gap_mm": gap})
+            print(f"| {t} | {v} | {wins / len(mine):.0%} ({wins}/{len(mine)}; {lo:.0%}-{hi:.0%}) | "
+                  f"{'-' if gap is None else f'{gap:.1f}'} |", flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"machine": describe(), "first_seed": args.first_seed, "rows": rows, "episodes": episodes}, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
