@@ -9,7 +9,6 @@ Rendering (the pure-torch reference renderer), both stages and the 3D argmax are
 observation contract's world -> cube mapping (`rvt2cli.model.observation`), computed from scene_bounds.
 """
 
-
 import torch
 from torch import nn
 
