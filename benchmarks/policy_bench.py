@@ -41,8 +41,9 @@ def synthetic_batch(cfg, batch: int, points: int, device, seed: int = 0):
 def synthetic_train_batch(cfg, batch: int, points: int, device) -> Batch:
     """A training batch of synthetic clouds, stage 2 centred on the target."""
     obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
-    return Batch(obs=obs, position=target, rot_bins=bins, gripper=flags[:, 0], collision=flags[:, 1], quaternion=None,
-                 half=None, stage2_center=target)
+    euler_deg = -180.0 + (bins.float() + 0.5) * (360.0 / cfg.rotation_bins)
+    return Batch(obs=obs, position=target, rot_bins=bins, euler_deg=euler_deg, gripper=flags[:, 0], collision=flags[:, 1],
+                 quaternion=None, half=None, stage2_center=target)
 
 
 def timer(device):

@@ -4,7 +4,10 @@ executor) with its keyframes degraded the way a policy's predictions are, on the
 - `exact`: the keyframes as the expert reached them;
 - `rotN`: each keyframe's rotation snapped to the centre of its Euler-angle bin, N bins per axis, by the
   functions the policy decodes its rotation with (`rvt2cli.model.rotation`): 72 is the paper's 5 degrees;
-- `posM`: each keyframe moved M mm in a random direction (seeded per episode).
+- `posM`: each keyframe moved M mm in a random direction (seeded per episode);
+- `turnD`: each keyframe turned D degrees about a random axis (seeded per episode): a policy's
+  rotation error, where `rotN` is only its quantisation;
+- `A+B`: both, e.g. `rot360+pos2`.
 
     python -m benchmarks.precision_budget [--tasks insert_peg,plug_charger] [--variants exact,rot72,rot360,pos2]
                                           [--seeds 20] [--first-seed 10000] [--workers 2] [--json out.json]
@@ -20,6 +23,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from benchmarks.machine import describe
 from rvt2cli.data.keyframes import Keyframe
@@ -32,16 +36,19 @@ from rvt2cli.model.rotation import bins_to_quaternion, quaternion_to_bins
 class Degradation:
     rotation_bins: int = 0       # > 0: snap rotations to bin centres
     position_mm: float = 0.0     # > 0: move each keyframe this far in a random direction
+    turn_deg: float = 0.0        # > 0: turn each keyframe this far about a random axis
 
     @staticmethod
     def parse(name: str) -> "Degradation":
-        if name == "exact":
-            return Degradation()
-        if name.startswith("rot"):
-            return Degradation(rotation_bins=int(name[3:]))
-        if name.startswith("pos"):
-            return Degradation(position_mm=float(name[3:]))
-        raise SystemExit(f"precision_budget: unknown variant {name!r} (exact, rotN, posM)")
+        fields = {}
+        for part in filter(lambda p: p != "exact", name.split("+")):
+            prefix = next((p for p in ("rot", "pos", "turn") if part.startswith(p)), None)
+            try:
+                field, kind = {"rot": ("rotation_bins", int), "pos": ("position_mm", float), "turn": ("turn_deg", float)}[prefix]
+                fields[field] = kind(part[len(prefix):])
+            except (KeyError, ValueError):
+                raise SystemExit(f"precision_budget: unknown variant {part!r} (exact, rotN, posM, turnD, A+B)") from None
+        return Degradation(**fields)
 
     def apply(self, keyframe: Keyframe, rng: np.random.Generator) -> Keyframe:
         position, quaternion = np.asarray(keyframe.position, float), np.asarray(keyframe.quaternion, float)
@@ -50,6 +57,10 @@ class Degradation:
         if self.position_mm:
             direction = rng.normal(size=3)
             position = position + self.position_mm / 1000.0 * direction / np.linalg.norm(direction)
+        if self.turn_deg:
+            axis = rng.normal(size=3)
+            turn = Rotation.from_rotvec(np.radians(self.turn_deg) * axis / np.linalg.norm(axis))
+            quaternion = (turn * Rotation.from_quat(quaternion)).as_quat()
         return Keyframe.from_pose([*position, *quaternion], keyframe.gripper_open, keyframe.ignore_collisions,
                                   keyframe.frame, keyframe.reasons)
 

@@ -247,15 +247,16 @@ def test_loop_bench_times_the_command_beside_its_step(tiny_dataset, tmp_path):
 
 
 def test_rotation_bins_set_the_policys_rotation_resolution(tiny_dataset, tmp_path, cli):
-    """--rotation-bins 360: the heads score 1-degree bins, the checkpoint keeps them, a resumed run may
-    not change them."""
+    """--rotation-bins 360 --rotation-sigma 2: the heads score 1-degree bins against soft targets, the
+    checkpoint keeps both, a resumed run may not change them."""
     from rvt2cli.model.rotation import angle_between, bins_to_quaternion, quaternion_to_bins
 
     run_dir = tmp_path / "fine"
-    train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), steps=2, save_every=2, rotation_bins=360, **TINY_TRAIN),
-          say=lambda *_: None)
+    train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), steps=2, save_every=2, rotation_bins=360,
+                       rotation_sigma=2.0, **TINY_TRAIN), say=lambda *_: None)
     policy, ckpt = load_policy(run_dir)
     assert ckpt.config.rotation_bins == 360 and policy.cfg.rotation_bins == 360
+    assert ckpt.config.rotation_sigma_deg == policy.cfg.rotation_sigma_deg == 2.0   # soft targets, decoded over 4 bins
     head = next(m for m in policy.modules() if hasattr(m, "rot_z"))
     assert head.rot_x.out_features == head.rot_z.out_features == 360
     quaternion = torch.nn.functional.normalize(torch.tensor([0.1, 0.7, 0.2, 0.6]), dim=0).numpy()

@@ -2,7 +2,7 @@
 
 import argparse
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names, number
 
 
 def register(subparsers) -> None:
@@ -22,6 +22,10 @@ def register(subparsers) -> None:
     p.add_argument("--rotation-bins", type=integer(4, 720), metavar="N",
                    help="Euler-angle bins per axis (default: the config's 72, i.e. 5 degrees, as the paper; "
                         "360 gives 1 degree, which a 3 mm insertion needs: benchmarks/precision_budget.py)")
+    p.add_argument("--rotation-sigma", type=number(0.0, 45.0), metavar="DEG",
+                   help="train rotations against a Gaussian of DEG degrees around the true angle instead of its one "
+                        "bin (default 0: one bin, as the paper); fine bins learn from their neighbours, and the "
+                        "prediction decodes between bin centres (e.g. --rotation-bins 360 --rotation-sigma 2)")
     p.add_argument("--steps", type=COUNT, help=f"optimizer steps (default {T.steps})")
     p.add_argument("--batch-size", type=COUNT, help=f"per device (default {T.batch_size}, as the paper)")
     p.add_argument("--lr", type=POSITIVE, help="peak learning rate (default 1.25e-5 x total batch, as the paper)")

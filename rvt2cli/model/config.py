@@ -35,6 +35,7 @@ class ModelConfig:
     local_rotation_features: bool = True  # False: RVT's global (pooled) rotation features
     rotation_feature_dim: int = 64     # per view, for each of the local and the pooled feature
     rotation_bins: int = 72            # 5 degrees per bin per Euler axis
+    rotation_sigma_deg: float = 0.0    # 0: one-bin rotation targets (the paper); > 0: circular Gaussian targets this wide
     head_hidden: int = 256
     splat_radius: float = 0.012        # cube units (the cube spans 2): ~1.3 px at 224 px
     heatmap_sigma: float = 1.5         # px, Gaussian heatmap target
@@ -67,6 +68,8 @@ class ModelConfig:
             raise ValueError("within_view_layers must be between 0 and depth")
         if self.stages not in (1, 2):
             raise ValueError("stages must be 1 or 2")
+        if self.rotation_sigma_deg < 0:
+            raise ValueError("rotation_sigma_deg must be 0 (one-bin targets) or positive")
 
 
 RVT2 = ModelConfig(name="rvt2")

@@ -18,7 +18,7 @@ from rvt2cli.model.heatmap import make_heatmap_head
 from rvt2cli.model.locate import heatmaps_to_point
 from rvt2cli.model.mvt import MultiViewTransformer
 from rvt2cli.model.observation import Observation
-from rvt2cli.model.rotation import decode_euler, euler_to_quaternion
+from rvt2cli.model.rotation import decode_euler, decode_window, euler_to_quaternion
 from rvt2cli.render.cameras import Cameras, cube_rig, project, zoom_rig
 from rvt2cli.render.channels import network_images
 
@@ -145,6 +145,7 @@ class RVT2Policy(nn.Module):
         action = self.action(self.action_features(outputs[-1], position))
         scores = [action["rot_x"], action["rot_y"], action["rot_z"]]
         rot_bins = torch.stack([s.argmax(-1) for s in scores], dim=-1)
-        return Prediction(position=position, rot_bins=rot_bins, quaternion=euler_to_quaternion(decode_euler(scores)),
+        euler = decode_euler(scores, window=decode_window(self.cfg.rotation_bins, self.cfg.rotation_sigma_deg))
+        return Prediction(position=position, rot_bins=rot_bins, quaternion=euler_to_quaternion(euler),
                           gripper_open=action["gripper"].argmax(-1) == 1,
                           ignore_collisions=action["collision"].argmax(-1) == 1, stage1_position=stage1, stages=outputs)

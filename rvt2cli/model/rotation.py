@@ -1,9 +1,14 @@
 """Rotations as three discrete Euler angles (xyz, 5-degree bins), as RVT and PerAct predict them.
 
 The network scores `rotation_bins` bins per axis; a prediction decodes to its best bin refined by its
-two neighbours' scores (`decode_euler`): a 5-degree bin centre is up to 2.5 degrees off per axis, and
+neighbours' scores (`decode_euler`): a 5-degree bin centre is up to 2.5 degrees off per axis, and
 a peg held 15 cm from the gripper enters a hole with 3 mm of clearance only within about 1 degree
 (benchmarks/precision_budget.py).
+
+Training targets are the true bin (the paper), or with `rotation_sigma_deg` > 0 a circular Gaussian
+over the bins centred on the true angle itself (`soft_bin_targets`, "circular smooth labels"): fine bins
+then share what their neighbours learn, and the scores' centroid (`decode_window` bins either side of
+the best) recovers the angle between bin centres.
 """
 
 import math
@@ -13,13 +18,30 @@ import torch
 from scipy.spatial.transform import Rotation
 
 
+def quaternion_to_euler(quat_xyzw: np.ndarray) -> np.ndarray:
+    """[..., 4] scalar-last quaternions -> [..., 3] extrinsic xyz Euler angles in degrees, in [-180, 180]."""
+    quat_xyzw = np.asarray(quat_xyzw, dtype=np.float64)
+    return Rotation.from_quat(quat_xyzw.reshape(-1, 4)).as_euler("xyz", degrees=True).reshape(*quat_xyzw.shape[:-1], 3)
+
+
 def quaternion_to_bins(quat_xyzw: np.ndarray, num_bins: int = 72) -> np.ndarray:
     """[..., 4] scalar-last quaternions -> [..., 3] integer bins of the extrinsic xyz Euler angles."""
-    quat_xyzw = np.asarray(quat_xyzw, dtype=np.float64)
-    euler = Rotation.from_quat(quat_xyzw.reshape(-1, 4)).as_euler("xyz", degrees=True)
     resolution = 360.0 / num_bins
-    bins = np.floor((euler + 180.0) / resolution).astype(np.int64) % num_bins
-    return bins.reshape(*quat_xyzw.shape[:-1], 3)
+    return np.floor((quaternion_to_euler(quat_xyzw) + 180.0) / resolution).astype(np.int64) % num_bins
+
+
+def soft_bin_targets(euler_deg: torch.Tensor, num_bins: int, sigma_deg: float) -> torch.Tensor:
+    """[B, 3] Euler angles (degrees) -> [B, 3, num_bins] target distributions: a Gaussian of `sigma_deg`
+    around each angle over the bin centres, wrapped around +-180 degrees, summing to 1 per axis."""
+    centres = -180.0 + (torch.arange(num_bins, device=euler_deg.device, dtype=torch.float32) + 0.5) * (360.0 / num_bins)
+    gap = torch.remainder(centres - euler_deg.float()[..., None] + 180.0, 360.0) - 180.0
+    return torch.softmax(-0.5 * (gap / sigma_deg) ** 2, dim=-1)
+
+
+def decode_window(num_bins: int, sigma_deg: float) -> int:
+    """Bins either side of the best that `decode_euler` averages over: one for one-bin targets, two
+    standard deviations of soft targets."""
+    return max(1, math.ceil(2 * sigma_deg / (360.0 / num_bins)))
 
 
 def bins_to_quaternion(bins: np.ndarray, num_bins: int = 72) -> np.ndarray:
@@ -43,19 +65,19 @@ def angle_between(quat_a: np.ndarray, quat_b: np.ndarray) -> np.ndarray:
     return np.degrees((a.inv() * b).magnitude())
 
 
-def decode_euler(logits: list[torch.Tensor], refine: bool = True) -> torch.Tensor:
+def decode_euler(logits: list[torch.Tensor], refine: bool = True, window: int = 1) -> torch.Tensor:
     """Three [B, bins] score tensors (x, y, z) -> [B, 3] extrinsic xyz Euler angles in radians: the best
-    bin's centre moved towards its neighbours (cyclically) by their share of the three bins' softmax
-    mass, p(k+1) - p(k-1) of a bin. The training targets are one bin, so an angle near a bin's edge is
-    scored in both bins it lies between: the shares place it within the bin. `refine=False`: the bin
-    centres (as RVT and PerAct decode)."""
+    bin's centre moved by the centroid of the softmax over the `window` bins either side of it
+    (cyclically); with one, p(k+1) - p(k-1) of a bin. One-bin targets score an angle near a bin's edge
+    in both bins it lies between, soft targets in a Gaussian around it: either way the centroid places
+    it within the bin. `refine=False`: the bin centres (as RVT and PerAct decode)."""
     angles = []
     for scores in logits:
         bins = scores.shape[-1]
         best = scores.argmax(-1, keepdim=True)
-        window = torch.cat([(best - 1) % bins, best, (best + 1) % bins], dim=-1)
-        share = torch.softmax(scores.float().gather(-1, window), dim=-1)
-        offset = share[:, 2] - share[:, 0] if refine else torch.zeros_like(share[:, 0])
+        steps = torch.arange(-window, window + 1, device=scores.device)
+        share = torch.softmax(scores.float().gather(-1, (best + steps) % bins), dim=-1)
+        offset = (share * steps.float()).sum(-1) if refine else torch.zeros_like(share[:, 0])
         angles.append(-math.pi + (best[:, 0].float() + 0.5 + offset) * (2 * math.pi / bins))
     return torch.stack(angles, dim=-1)
 

@@ -13,7 +13,7 @@ import torch
 
 from rvt2cli.model.config import ModelConfig
 from rvt2cli.model.observation import Observation, colours, fit_points
-from rvt2cli.model.rotation import quaternion_to_bins
+from rvt2cli.model.rotation import quaternion_to_bins, quaternion_to_euler
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation, yaw_matrices
 from rvt2cli.train.samples import SampleSet
@@ -89,6 +89,7 @@ class Batch:
     obs: Observation
     position: torch.Tensor       # [B, 3] cube coordinates
     rot_bins: torch.Tensor       # [B, 3]
+    euler_deg: torch.Tensor      # [B, 3] the target's Euler angles (soft rotation targets)
     gripper: torch.Tensor        # [B]
     collision: torch.Tensor      # [B]
     quaternion: np.ndarray       # [B, 4] the (augmented) target orientation
@@ -126,6 +127,7 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
     position_cube = ((position - center) / half[:, None]).astype(np.float32)
     batch = Batch(obs=obs, position=to_device(position_cube, device),
                   rot_bins=to_device(quaternion_to_bins(quaternion, cfg.rotation_bins), device),
+                  euler_deg=to_device(quaternion_to_euler(quaternion).astype(np.float32), device),
                   gripper=to_device(packed.target_gripper[idx], device),
                   collision=to_device(packed.target_collision[idx], device),
                   quaternion=quaternion, half=half)

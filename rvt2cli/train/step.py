@@ -33,7 +33,7 @@ class TrainStep:
         with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=self.amp):
             outputs = self.model(batch.obs, batch.position, batch.rot_bins, batch.stage2_center)
         losses = policy_loss(outputs, batch.position, batch.rot_bins, batch.gripper, batch.collision,
-                             self.cfg.image_size, self.cfg.heatmap_sigma)
+                             self.cfg.image_size, self.cfg.heatmap_sigma, batch.euler_deg, self.cfg.rotation_sigma_deg)
         self.optimizer.zero_grad(set_to_none=True)
         losses["total"].backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.clip)

@@ -117,9 +117,11 @@ def resolve_options(opts: TrainOptions) -> tuple[TrainOptions, Checkpoint | None
 
 
 def model_config(opts: TrainOptions) -> ModelConfig:
-    """The named config, with the run's own rotation resolution where it sets one."""
+    """The named config, with the run's own rotation bins and targets where it sets them."""
     cfg = get_config(opts.config)
-    return replace(cfg, rotation_bins=opts.rotation_bins) if opts.rotation_bins else cfg
+    if opts.rotation_bins:
+        cfg = replace(cfg, rotation_bins=opts.rotation_bins)
+    return replace(cfg, rotation_sigma_deg=opts.rotation_sigma) if opts.rotation_sigma is not None else cfg
 
 
 # --- data --------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ onebox=scripts/offline-gpu-host/gpu_onebox.sh
 self=scripts/offline-gpu-host/$(basename "$0")
 COMPILE=${COMPILE---compile}          # a dry run on a CPU: COMPILE= STEPS=8 EVAL_EPISODES=1 (and gpu_onebox.sh's settings)
 export STEPS=${STEPS:-1200}
+export ROTATION=${ROTATION:-}         # rotation options of rvt2 train (results v5: --rotation-bins 360 --rotation-sigma 2)
 export RUN=${RUN:-v4} HELDOUT_TASKS=${HELDOUT_TASKS:-"insert_peg plug_charger"} HELDOUT_EPISODES=${HELDOUT_EPISODES:-10}
 W=${W:-/tmp/w}
 
@@ -27,7 +28,7 @@ case ${1:-} in
     bash $onebox bg chain "$self" chain ;;  # in the background: a command ends after 10 minutes
   chain)
     bash $onebox record heldout merged
-    DATA=$W/demos_merged TRAIN_ARGS=$COMPILE bash $onebox train ;;
+    DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $ROTATION" bash $onebox train ;;
   evaluate)
     WAIT_S=${WAIT_S:-540} bash $onebox wait chain
     OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline results ;;
