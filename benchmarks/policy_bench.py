@@ -22,6 +22,7 @@ from benchmarks.machine import describe
 from rvt2cli.model.config import get_config
 from rvt2cli.model.observation import Observation
 from rvt2cli.model.policy import RVT2Policy
+from rvt2cli.model.rotation import bin_centre_deg
 from rvt2cli.train.batches import Batch
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
 from rvt2cli.train.step import TrainStep
@@ -41,7 +42,7 @@ def synthetic_batch(cfg, batch: int, points: int, device, seed: int = 0):
 def synthetic_train_batch(cfg, batch: int, points: int, device) -> Batch:
     """A training batch of synthetic clouds, stage 2 centred on the target."""
     obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
-    euler_deg = -180.0 + (bins.float() + 0.5) * (360.0 / cfg.rotation_bins)
+    euler_deg = bin_centre_deg(bins.float(), cfg.rotation_bins)
     return Batch(obs=obs, position=target, rot_bins=bins, euler_deg=euler_deg, gripper=flags[:, 0], collision=flags[:, 1],
                  quaternion=None, half=None, stage2_center=target)
 

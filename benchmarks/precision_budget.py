@@ -32,6 +32,10 @@ from rvt2cli.eval.sources import OracleSource
 from rvt2cli.model.rotation import bins_to_quaternion, quaternion_to_bins
 
 
+# a variant's prefix -> the Degradation field its number sets, and the number's type
+VARIANT_PREFIXES = {"rot": ("rotation_bins", int), "pos": ("position_mm", float), "turn": ("turn_deg", float)}
+
+
 @dataclass(frozen=True)
 class Degradation:
     rotation_bins: int = 0       # > 0: snap rotations to bin centres
@@ -42,9 +46,9 @@ class Degradation:
     def parse(name: str) -> "Degradation":
         fields = {}
         for part in filter(lambda p: p != "exact", name.split("+")):
-            prefix = next((p for p in ("rot", "pos", "turn") if part.startswith(p)), None)
+            prefix = next((p for p in VARIANT_PREFIXES if part.startswith(p)), None)
             try:
-                field, kind = {"rot": ("rotation_bins", int), "pos": ("position_mm", float), "turn": ("turn_deg", float)}[prefix]
+                field, kind = VARIANT_PREFIXES[prefix]
                 fields[field] = kind(part[len(prefix):])
             except (KeyError, ValueError):
                 raise SystemExit(f"precision_budget: unknown variant {part!r} (exact, rotN, posM, turnD, A+B)") from None

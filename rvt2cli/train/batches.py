@@ -13,7 +13,7 @@ import torch
 
 from rvt2cli.model.config import ModelConfig
 from rvt2cli.model.observation import Observation, colours, fit_points
-from rvt2cli.model.rotation import quaternion_to_bins, quaternion_to_euler
+from rvt2cli.model.rotation import euler_to_bins, quaternion_to_euler
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation, yaw_matrices
 from rvt2cli.train.samples import SampleSet
@@ -125,9 +125,10 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
     obs = Observation(points=points, rgb=colours(packed.rgb[index]), num_points=packed.count[index],
                       proprio=packed.proprio[index], lang=packed.lang[packed.instruction[index]])
     position_cube = ((position - center) / half[:, None]).astype(np.float32)
+    euler = quaternion_to_euler(quaternion)
     batch = Batch(obs=obs, position=to_device(position_cube, device),
-                  rot_bins=to_device(quaternion_to_bins(quaternion, cfg.rotation_bins), device),
-                  euler_deg=to_device(quaternion_to_euler(quaternion).astype(np.float32), device),
+                  rot_bins=to_device(euler_to_bins(euler, cfg.rotation_bins), device),
+                  euler_deg=to_device(euler.astype(np.float32), device),
                   gripper=to_device(packed.target_gripper[idx], device),
                   collision=to_device(packed.target_collision[idx], device),
                   quaternion=quaternion, half=half)
