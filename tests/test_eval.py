@@ -126,6 +126,14 @@ def test_offline_precision_of_a_checkpoint_on_recorded_demos(tiny_checkpoint, ti
     assert stack["stage2_mm"]["median"] < 10.0 and stack["stage2_mm"]["p90"] >= stack["stage2_mm"]["median"]  # trained on them
     assert stack["gripper_accuracy"] >= 0.9
     assert set(stack["keyframes"]) >= {"0", "1"} and "stage 2 mm" in (out / "offline.md").read_text()
+    # the observations a closed loop makes: frame 0 and each keyframe's frame, one per keyframe of each demo
+    from rvt2cli.data import read_episode
+    from rvt2cli.data.paths import episode_paths
+
+    annotations = [read_episode(p).require_keyframes() for p in episode_paths([str(tiny_dataset)])]
+    assert stack["starts"]["samples"] == sum(len(a.keyframes) for a in annotations) < stack["samples"]
+    assert sum(s["samples"] for s in stack["start_keyframes"].values()) == stack["starts"]["samples"]
+    assert "| starts |" in (out / "offline.md").read_text() and "| 1 start |" in (out / "offline.md").read_text()
 
 
 def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):
@@ -137,3 +145,4 @@ def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):
     assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "raw"), "no keyframes", "extract-keyframes")
     record("push_cube", 1, tmp_path / "other", options=RecordOptions(cameras=("front",), image_size=32))
     assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "other"), "not trained on task(s) push_cube")
+

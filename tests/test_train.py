@@ -268,3 +268,35 @@ def test_rotation_bins_set_the_policys_rotation_resolution(tiny_dataset, tmp_pat
     assert_one_line_error(r, "--rotation-bins 72 differs from the run's 360")
     r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "bad", "--config", "small", "--rotation-bins", "2")
     assert r.returncode != 0 and "below the minimum 4" in r.stderr
+
+
+def test_start_share_draws_keyframe_starts_and_is_kept_with_the_run(tiny_dataset, tmp_path, cli):
+    """--start-share 0.5: half of each task's draws come from its keyframe-start samples (the only
+    observations a closed loop makes), the other half from all samples as before; 0 draws exactly what
+    the plain task-uniform sampler draws; the run keeps the share, and a resume may not change it."""
+    import numpy as np
+
+    from rvt2cli.model.config import get_config
+    from rvt2cli.train.batches import TaskUniformSampler
+    from rvt2cli.train.trainer import load_data
+
+    opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "x"), **TINY_TRAIN)
+    packed = load_data(opts, get_config("small"), torch.device("cpu"), False, None, lambda *_: None).packed
+    start = packed.keyframe_start
+    assert 0 < start.sum() < len(start)
+    draws = TaskUniformSampler(packed.task, start, 0.5).sample(20_000, torch.Generator().manual_seed(0))
+    expected = 0.5 + 0.5 * start.mean()   # the uniform half also lands on a start now and then
+    assert abs(start[draws].mean() - expected) < 0.02
+    assert set(draws[start[draws]]) == set(np.flatnonzero(start))   # every start sample is drawn
+    plain = TaskUniformSampler(packed.task).sample(500, torch.Generator().manual_seed(3))
+    assert (TaskUniformSampler(packed.task, start, 0.0).sample(500, torch.Generator().manual_seed(3)) == plain).all()
+    assert start[TaskUniformSampler(packed.task, start, 1.0).sample(500, torch.Generator().manual_seed(3))].all()
+
+    run_dir = tmp_path / "share"
+    train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), steps=2, save_every=2, start_share=0.5, **TINY_TRAIN),
+          say=lambda *_: None)
+    assert json.loads((run_dir / "run.json").read_text())["options"]["start_share"] == 0.5
+    r = cli("train", "--out", run_dir, "--resume", "--start-share", "0.2")
+    assert_one_line_error(r, "--start-share 0.2 differs from the run's 0.5")
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "bad", "--start-share", "1.5")
+    assert r.returncode != 0 and "1.5" in r.stderr

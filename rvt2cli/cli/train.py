@@ -44,6 +44,10 @@ def register(subparsers) -> None:
                    help="train on each task's first N episodes only (lowest seeds), e.g. 10 for the few-demo setting")
     p.add_argument("--keyframe-starts-only", action="store_true",
                    help="only samples observed at frame 0 or at a keyframe, not those every --obs-every frames in between")
+    p.add_argument("--start-share", type=number(0.0, 1.0), metavar="P",
+                   help="draw this share of each task's samples from those observed at frame 0 or at a keyframe, "
+                        "the only observations a closed loop makes (default 0: every sample alike, as the paper); "
+                        "e.g. 0.5")
     p.add_argument("--cameras", type=names, help="fuse only these cameras' points, e.g. front (the single-camera setting)")
     p.add_argument("--no-amp", dest="amp", action="store_false", help="no bf16 autocast on CUDA")
     p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU: ~1.5x faster after a minute of compiling)")

@@ -30,6 +30,7 @@ class PackedSamples:
     task: np.ndarray           # [S]
     keyframe_index: np.ndarray  # [S] which keyframe of its episode the target is (-1: unknown)
     final_keyframe: np.ndarray  # [S] bool: the target is its episode's last keyframe
+    keyframe_start: np.ndarray  # [S] bool: observed at frame 0 or at a keyframe (what a closed loop sees)
     target_position: np.ndarray    # [S, 3] world
     target_quaternion: np.ndarray  # [S, 4] xyzw
     target_gripper: np.ndarray     # [S] 1 = open
@@ -55,6 +56,7 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
     pick = np.asarray(indices, dtype=np.int64)
     keyframe_index = np.asarray(samples.keyframe_index if samples.keyframe_index else [-1] * len(samples), np.int64)
     final_keyframe = np.asarray(samples.final_keyframe if samples.final_keyframe else [False] * len(samples), bool)
+    keyframe_start = np.asarray(samples.keyframe_start if samples.keyframe_start else [False] * len(samples), bool)
     return PackedSamples(
         xyz=torch.from_numpy(xyz).to(device), rgb=torch.from_numpy(rgb).to(device), count=torch.from_numpy(count).to(device),
         proprio=torch.from_numpy(np.stack([samples.proprio[i] for i in indices])).to(device),
@@ -63,6 +65,7 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
         task=np.asarray(samples.task_index)[pick],
         keyframe_index=keyframe_index[pick],
         final_keyframe=final_keyframe[pick],
+        keyframe_start=keyframe_start[pick],
         target_position=np.stack([samples.target_position[i] for i in indices]).astype(np.float64),
         target_quaternion=np.stack([samples.target_quaternion[i] for i in indices]),
         target_gripper=np.asarray(samples.target_gripper_open, np.int64)[pick],
@@ -73,15 +76,32 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
 
 
 class TaskUniformSampler:
-    """Draw a task uniformly, then one of its samples uniformly."""
+    """Draw a task uniformly, then one of its samples uniformly; with `start_share` > 0, that share of
+    the draws takes one of the task's keyframe-start samples instead.
 
-    def __init__(self, task: np.ndarray):
+    Why: a closed loop only ever observes the scene at keyframe starts (frame 0, then where each keyframe
+    was reached), but the samples between keyframes (every `--obs-every` frames, the paper's demo
+    augmentation) outnumber them 3-5 to 1, and are the easy ones: mid-motion, the gripper already points
+    where it goes. A long transit (insert_peg's grasp to pre-insert) leaves its one start sample, the
+    only one a rollout asks about, a twentieth of the task's draws."""
+
+    def __init__(self, task: np.ndarray, start: np.ndarray | None = None, start_share: float = 0.0):
+        if not 0.0 <= start_share <= 1.0:
+            raise ValueError("start_share must be within [0, 1]")
         self.by_task = [np.flatnonzero(task == t) for t in np.unique(task)]
+        start = np.zeros(len(task), bool) if start is None else np.asarray(start, bool)
+        self.starts_by_task = [np.flatnonzero((task == t) & start) for t in np.unique(task)]
+        self.start_share = start_share
 
     def sample(self, n: int, generator: torch.Generator) -> np.ndarray:
         tasks = torch.randint(len(self.by_task), (n,), generator=generator).numpy()
         picks = torch.rand(n, generator=generator, dtype=torch.float64).numpy()
-        return np.array([self.by_task[t][int(p * len(self.by_task[t]))] for t, p in zip(tasks, picks)])
+        from_starts = np.zeros(n, bool)
+        if self.start_share > 0:  # only then: a run without it draws exactly the random numbers it always did
+            from_starts = torch.rand(n, generator=generator, dtype=torch.float64).numpy() < self.start_share
+        pools = [self.starts_by_task[t] if start and len(self.starts_by_task[t]) else self.by_task[t]
+                 for t, start in zip(tasks, from_starts)]
+        return np.array([pool[int(p * len(pool))] for pool, p in zip(pools, picks)])
 
 
 @dataclass
@@ -139,16 +159,16 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
 
 
 class BatchStream:
-    """The training loop's batches, in order: task-uniform samples, augmented, on the device (what
-    `rvt2 train` runs and `benchmarks/loop_bench.py` times). Making one costs the host about a
-    millisecond at batch 192 (H200 machine), so it is made in turn: a thread preparing batches
+    """The training loop's batches, in order: task-uniform samples (`TaskUniformSampler`), augmented, on
+    the device (what `rvt2 train` runs and `benchmarks/loop_bench.py` times). Making one costs the host
+    about a millisecond at batch 192 (H200 machine), so it is made in turn: a thread preparing batches
     ahead measured no faster."""
 
     def __init__(self, packed: PackedSamples, cfg: ModelConfig, generator: torch.Generator, batch_size: int,
-                 augment: bool = True):
+                 augment: bool = True, start_share: float = 0.0):
         self.packed, self.cfg, self.generator, self.batch_size = packed, cfg, generator, batch_size
         self.max_translation, self.max_yaw_deg = (0.125, 45.0) if augment else (0.0, 0.0)
-        self.sampler = TaskUniformSampler(packed.task)
+        self.sampler = TaskUniformSampler(packed.task, packed.keyframe_start, start_share)
 
     def __iter__(self):
         return self

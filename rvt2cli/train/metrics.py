@@ -7,6 +7,9 @@ rotation error (geodesic angle between the predicted Euler-bin centre and the tr
 and whether the gripper state and the collision flag are right. Summaries give the median, p90 and
 mean, overall, per task, per (task, keyframe index) (keyframe 0 = the first of an episode), and per
 task for the episodes' final keyframes (the insertion, the placement: where precision decides).
+Per task again for the keyframe-start observations alone (frame 0 and each keyframe's frame): a
+closed loop observes the scene only there, while the samples between keyframes (the demo
+augmentation) are mostly easier, mid-motion, with the gripper already turned towards its goal.
 """
 
 from dataclasses import dataclass
@@ -30,6 +33,7 @@ class Scores:
     task: np.ndarray            # task index per sample
     keyframe_index: np.ndarray  # -1: unknown
     final: np.ndarray           # bool: the target is its episode's last keyframe (an insertion, a placement)
+    start: np.ndarray           # bool: observed at frame 0 or at a keyframe, as a closed loop observes
 
     def __len__(self) -> int:
         return len(self.stage2_mm)
@@ -62,6 +66,7 @@ def score_predictions(policy, packed: PackedSamples, indices=None, batch_size: i
         parts["task"].append(packed.task[idx])
         parts["keyframe_index"].append(packed.keyframe_index[idx])
         parts["final"].append(packed.final_keyframe[idx])
+        parts["start"].append(packed.keyframe_start[idx])
         if progress:
             progress(len(idx))
     policy.train(was_training)
@@ -91,8 +96,24 @@ def precision_report(scores: Scores, task_names: list[str]) -> dict:
                               for k in sorted(set(of_task.keyframe_index.tolist())) if k >= 0}
         if of_task.final.any():
             entry["final_keyframe"] = summarize(of_task.subset(of_task.final))
+        if of_task.start.any():
+            starts = of_task.subset(of_task.start)
+            entry["starts"] = summarize(starts)
+            entry["start_keyframes"] = {str(k): summarize(starts.subset(starts.keyframe_index == k))
+                                        for k in sorted(set(starts.keyframe_index.tolist())) if k >= 0}
         report["tasks"][task_names[t]] = entry
     return report
+
+
+def task_rows(entry: dict) -> list[tuple[str, dict]]:
+    """A task's summaries as (label, summary) rows, in the order tables show them: all, each keyframe,
+    the final keyframe, then the keyframe starts alone ("starts", "2 start", ...)."""
+    rows = [("all", entry), *entry["keyframes"].items()]
+    if "final_keyframe" in entry:
+        rows.append(("final", entry["final_keyframe"]))
+    if "starts" in entry:
+        rows += [("starts", entry["starts"]), *((f"{k} start", s) for k, s in entry["start_keyframes"].items())]
+    return rows
 
 
 def headline(s: dict) -> dict:

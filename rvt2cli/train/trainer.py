@@ -30,7 +30,7 @@ from rvt2cli.model.language import InstructionCache
 from rvt2cli.model.policy import RVT2Policy
 from rvt2cli.train.batches import BatchStream, PackedSamples, make_batch, pack
 from rvt2cli.train.checkpoint import Checkpoint, load_checkpoint, load_weights, save_checkpoint
-from rvt2cli.train.metrics import headline, precision_report, score_predictions
+from rvt2cli.train.metrics import headline, precision_report, score_predictions, task_rows
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
 from rvt2cli.train.options import TrainOptions, conflicts
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
@@ -296,8 +296,7 @@ class RunLog:
                 self.tb.add_scalar(f"val/{key}", value, step)
         rows = []
         for task, entry in report["tasks"].items():
-            final = [("final", entry["final_keyframe"])] if "final_keyframe" in entry else []
-            for keyframe, s in [("all", entry), *entry["keyframes"].items(), *final]:
+            for keyframe, s in task_rows(entry):
                 rows.append({"step": step, "task": task, "keyframe": keyframe, "samples": s["samples"],
                              "stage1_mm_median": s["stage1_mm"]["median"], "stage1_mm_p90": s["stage1_mm"]["p90"],
                              "stage2_mm_median": s["stage2_mm"]["median"], "stage2_mm_p90": s["stage2_mm"]["p90"],
@@ -363,7 +362,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
         model = torch.nn.parallel.DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None)
     amp = opts.amp and device.type == "cuda"
     train_step = TrainStep(policy, optimizer, state.schedule, amp, opts.clip, model)
-    batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment)
+    batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share)
     samples = data.samples
     info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs, "options": opts.to_json()}
     log = RunLog(run_dir, state.step) if rank == 0 else None
