@@ -145,4 +145,3 @@ def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):
     assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "raw"), "no keyframes", "extract-keyframes")
     record("push_cube", 1, tmp_path / "other", options=RecordOptions(cameras=("front",), image_size=32))
     assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "other"), "not trained on task(s) push_cube")
-

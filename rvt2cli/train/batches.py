@@ -91,7 +91,7 @@ class TaskUniformSampler:
             raise ValueError("start_share must be within [0, 1]")
         self.by_task = [np.flatnonzero(task == t) for t in np.unique(task)]
         start = np.zeros(len(task), bool) if start is None else np.asarray(start, bool)
-        self.starts_by_task = [np.flatnonzero((task == t) & start) for t in np.unique(task)]
+        self.starts_by_task = [indices[start[indices]] for indices in self.by_task]
         self.start_share = start_share
 
     def sample(self, n: int, generator: torch.Generator) -> np.ndarray:

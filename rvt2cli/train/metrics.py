@@ -86,21 +86,25 @@ def summarize(scores: Scores) -> dict:
             "collision_accuracy": float(scores.collision_ok.mean()) if len(scores) else None}
 
 
+def _per_keyframe(scores: Scores) -> dict[str, dict]:
+    """Summaries per known keyframe index ("0", "1", ...)."""
+    return {str(k): summarize(scores.subset(scores.keyframe_index == k))
+            for k in sorted(set(scores.keyframe_index.tolist())) if k >= 0}
+
+
 def precision_report(scores: Scores, task_names: list[str]) -> dict:
     """Overall, per task, and per task and keyframe index."""
     report = {"overall": summarize(scores), "tasks": {}}
     for t in sorted(set(scores.task.tolist())):
         of_task = scores.subset(scores.task == t)
         entry = summarize(of_task)
-        entry["keyframes"] = {str(k): summarize(of_task.subset(of_task.keyframe_index == k))
-                              for k in sorted(set(of_task.keyframe_index.tolist())) if k >= 0}
+        entry["keyframes"] = _per_keyframe(of_task)
         if of_task.final.any():
             entry["final_keyframe"] = summarize(of_task.subset(of_task.final))
         if of_task.start.any():
             starts = of_task.subset(of_task.start)
             entry["starts"] = summarize(starts)
-            entry["start_keyframes"] = {str(k): summarize(starts.subset(starts.keyframe_index == k))
-                                        for k in sorted(set(starts.keyframe_index.tolist())) if k >= 0}
+            entry["start_keyframes"] = _per_keyframe(starts)
         report["tasks"][task_names[t]] = entry
     return report
 
