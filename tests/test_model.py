@@ -131,7 +131,10 @@ def test_action_head_autoregression_uses_earlier_bins():
                                                    "gripper": (2, 2), "collision": (2, 2)}
 
 
-@pytest.mark.parametrize("cfg", [SMALL, RVT2], ids=["small", "rvt2"])
+COARSE = replace(SMALL, coarse_action_features=True)
+
+
+@pytest.mark.parametrize("cfg", [SMALL, COARSE, RVT2], ids=["small", "small-coarse-action-features", "rvt2"])
 def test_policy_forward_backward_and_predict_shapes(cfg):
     torch.manual_seed(0)
     policy = RVT2Policy(cfg, render_backend="torch" if cfg is RVT2 else "warp")
@@ -144,12 +147,35 @@ def test_policy_forward_backward_and_predict_shapes(cfg):
     losses = policy_loss(out, target, bins, bins[:, 0], bins[:, 0], cfg.image_size, cfg.heatmap_sigma)
     losses["total"].backward()
     assert all(p.grad is not None for p in policy.parameters())
-    if cfg is SMALL:
+    if cfg is not RVT2:
         pred = policy.predict(obs)
         assert pred.position.shape == (b, 3) and pred.rot_bins.shape == (b, 3) and pred.gripper_open.dtype == torch.bool
         # the decoded rotation lies within its best bins (half a bin per axis at most)
         centres = bins_to_quaternion(pred.rot_bins.numpy(), cfg.rotation_bins)
         assert np.all(angle_between(pred.quaternion.numpy(), centres) <= 2.5 * 3 ** 0.5 + 1e-3)
+
+
+@pytest.mark.parametrize("coarse", [False, True])
+def test_coarse_action_features_let_the_heads_see_what_stage_2_does_not(coarse):
+    """A change to the scene outside stage 2's box (+-1/zoom around the point) reaches the rotation heads
+    only through stage 1, so only with `coarse_action_features`."""
+    torch.manual_seed(0)
+    cfg = replace(SMALL, coarse_action_features=coarse)
+    policy = RVT2Policy(cfg).eval()
+    obs = observation(cfg, batch=1)
+    point = torch.tensor([[0.5, 0.5, 0.5]])
+    far = (obs.points - point).abs().amax(-1) > 1.5 / cfg.zoom            # outside stage 2's box, with a margin
+    moved = Observation(points=torch.where(far[..., None], obs.points.flip(-1), obs.points), rgb=obs.rgb,
+                        num_points=obs.num_points, proprio=obs.proprio, lang=obs.lang)
+
+    def rotation_logits(o):
+        with torch.no_grad():
+            outputs = [policy.run_stage(0, o), policy.run_stage(1, o, point)]
+            return policy.action(policy.action_features(outputs, point))["rot_z"]
+
+    assert far.sum() > 1000 and not torch.equal(moved.points, obs.points)
+    changed = not torch.allclose(rotation_logits(obs), rotation_logits(moved))
+    assert changed == coarse
 
 
 def test_loss_decreases_on_a_fixed_batch():

@@ -83,6 +83,12 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
     assert (samples[0].obs_frame, samples[0].keyframe) == (0, 0)
     assert all(kfs[s.keyframe].frame > s.obs_frame for s in samples)
     assert read_episode(path).keyframes == annotation.keyframes
+    # what RVT-2's stage 2 (+-10 cm around the keyframe) sees of the box: part of it at the insertion,
+    # nothing at the aligned pose before it, where the held peg keeps the TCP 15-21 cm from the face
+    from benchmarks.stage2_view import measure
+
+    view = measure([path], half=0.1)["insert_peg"]
+    assert view["last"]["mean_share"] > 0.05 and view["before last"]["episodes_blind"] == 1
 
 
 def test_extract_keyframes_cli_continues_past_bad_files(push_cube_dir, tmp_path, cli):

@@ -5,7 +5,8 @@ the end-effector location (bilinearly sampled at its projection: the ground trut
 prediction at inference) and the view's max-pooled feature; an MLP over all views' features predicts
 the Euler bins autoregressively: x, then y given x, then z given x and y, plus gripper open and
 "ignore collisions" (2-way each). RVT-1's global variant (the ablation) replaces the sampled feature
-with a heatmap-weighted mean of the view's features.
+with a heatmap-weighted mean of the view's features. With `coarse_action_features` the MLP also gets
+stage 1's features at the same point, read the same way through their own projection.
 """
 
 import torch
@@ -21,9 +22,11 @@ class ActionHead(nn.Module):
         self.cfg = cfg
         d = cfg.rotation_feature_dim
         self.reduce = nn.Conv2d(cfg.width, d, 1)
+        self.reduce_coarse = nn.Conv2d(cfg.width, d, 1) if self.reads_coarse else None
         views = len(cfg.views)
         bins = cfg.rotation_bins
-        self.trunk = nn.Sequential(nn.Linear(views * 2 * d, cfg.head_hidden), nn.GELU(),
+        stages_read = 2 if self.reads_coarse else 1
+        self.trunk = nn.Sequential(nn.Linear(stages_read * views * 2 * d, cfg.head_hidden), nn.GELU(),
                                    nn.Linear(cfg.head_hidden, cfg.head_hidden), nn.GELU())
         self.rot_x = nn.Linear(cfg.head_hidden, bins)
         self.rot_y = nn.Linear(cfg.head_hidden + bins, bins)
@@ -31,11 +34,16 @@ class ActionHead(nn.Module):
         self.gripper = nn.Linear(cfg.head_hidden, 2)
         self.collision = nn.Linear(cfg.head_hidden, 2)
 
-    def features(self, tokens: torch.Tensor, uv: torch.Tensor | None, heatmap_probs: torch.Tensor | None) -> torch.Tensor:
-        """tokens [B, V, D, t, t]; uv [B, V, 2] pixel coords of the location (local features) or
-        heatmap_probs [B, V, H, W] (global features) -> [B, V * 2 * d]."""
+    @property
+    def reads_coarse(self) -> bool:
+        return self.cfg.coarse_action_features and self.cfg.stages == 2
+
+    def features(self, tokens: torch.Tensor, uv: torch.Tensor | None, heatmap_probs: torch.Tensor | None,
+                 coarse: bool = False) -> torch.Tensor:
+        """tokens [B, V, D, t, t] of stage 2 (or of stage 1, `coarse`); uv [B, V, 2] pixel coords of the
+        location (local features) or heatmap_probs [B, V, H, W] (global features) -> [B, V * 2 * d]."""
         b, v = tokens.shape[:2]
-        f = self.reduce(tokens.flatten(0, 1))                            # [B*V, d, t, t]
+        f = (self.reduce_coarse if coarse else self.reduce)(tokens.flatten(0, 1))   # [B*V, d, t, t]
         pooled = f.amax(dim=(-2, -1))                                    # [B*V, d]
         if self.cfg.local_rotation_features:
             size = self.cfg.image_size

@@ -33,6 +33,10 @@ class ModelConfig:
     convex_upsampling: bool = True     # False: RVT's transposed-convolution upsampling of features
     upsample_hidden: int = 256
     local_rotation_features: bool = True  # False: RVT's global (pooled) rotation features
+    # True: the action head also reads stage 1's features at the predicted point. Stage 2 sees +-10 cm
+    # around it, and a target that far from what defines it (insert_peg's aligned pose, 15-21 cm before the
+    # box) leaves stage 2 blind to its orientation. False: stage 2's features alone (the paper).
+    coarse_action_features: bool = False
     rotation_feature_dim: int = 64     # per view, for each of the local and the pooled feature
     rotation_bins: int = 72            # 5 degrees per bin per Euler axis
     rotation_sigma_deg: float = 0.0    # 0: one-bin rotation targets (the paper); > 0: circular Gaussian targets this wide

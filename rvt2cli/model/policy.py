@@ -3,7 +3,8 @@
 Stage 1 renders the scene cube from fixed virtual views and predicts a heatmap per view; the 3D point
 the heatmaps agree on is where stage 2 zooms in (training: the true target plus noise). Stage 2
 re-renders the cloud around that point, predicts the final point, and the action head reads the
-stage-2 features at that point. Inputs (`rvt2cli.model.observation`) and outputs are in the normalised scene cube.
+stage-2 features at that point (and stage 1's, with `coarse_action_features`). Inputs
+(`rvt2cli.model.observation`) and outputs are in the normalised scene cube.
 """
 
 import math
@@ -98,10 +99,16 @@ class RVT2Policy(nn.Module):
         box_center, half = self.box(stage, center, probs)
         return heatmaps_to_point(probs, self.cfg.views, box_center, half)
 
-    def action_features(self, out: StageOutput, location: torch.Tensor) -> torch.Tensor:
-        uv, _ = project(location[:, None, :].float(), out.cameras)        # [B, V, 1, 2]
-        probs = None if self.cfg.local_rotation_features else out.logits.float().flatten(-2).softmax(-1).view_as(out.logits)
-        return self.action.features(out.tokens, uv[:, :, 0], probs)
+    def action_features(self, outputs: list[StageOutput], location: torch.Tensor) -> torch.Tensor:
+        """What the action head reads at `location`: the last stage's features, and stage 1's before
+        them with `coarse_action_features`."""
+        read = [(outputs[0], True)] if self.action.reads_coarse else []
+        features = []
+        for out, coarse in read + [(outputs[-1], False)]:
+            uv, _ = project(location[:, None, :].float(), out.cameras)        # [B, V, 1, 2]
+            probs = None if self.cfg.local_rotation_features else out.logits.float().flatten(-2).softmax(-1).view_as(out.logits)
+            features.append(self.action.features(out.tokens, uv[:, :, 0], probs, coarse=coarse))
+        return torch.cat(features, dim=-1)
 
     # --- training and inference -------------------------------------------------------------------
     def forward_train(self, obs: Observation, target_position: torch.Tensor, target_rot_bins: torch.Tensor,
@@ -111,7 +118,7 @@ class RVT2Policy(nn.Module):
         outputs = [self.run_stage(0, obs)]
         if self.cfg.stages == 2:
             outputs.append(self.run_stage(1, obs, stage2_center))
-        action = self.action(self.action_features(outputs[-1], target_position), target_rot_bins)
+        action = self.action(self.action_features(outputs, target_position), target_rot_bins)
         return {"stages": outputs, "action": action}
 
     forward = forward_train  # what DistributedDataParallel calls
@@ -142,7 +149,7 @@ class RVT2Policy(nn.Module):
         if self.cfg.stages == 2:
             outputs.append(self.run_stage(1, obs, stage1))
             position = self.locate(1, outputs[1], stage1)
-        action = self.action(self.action_features(outputs[-1], position))
+        action = self.action(self.action_features(outputs, position))
         scores = [action["rot_x"], action["rot_y"], action["rot_z"]]
         rot_bins = torch.stack([s.argmax(-1) for s in scores], dim=-1)
         euler = decode_euler(scores, window=decode_window(self.cfg.rotation_bins, self.cfg.rotation_sigma_deg))

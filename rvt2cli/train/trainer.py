@@ -117,10 +117,14 @@ def resolve_options(opts: TrainOptions) -> tuple[TrainOptions, Checkpoint | None
 
 
 def model_config(opts: TrainOptions) -> ModelConfig:
-    """The named config, with the run's own rotation bins and targets where it sets them."""
+    """The named config, with the run's own rotation bins and targets, action features and zoom where it sets them."""
     cfg = get_config(opts.config)
     if opts.rotation_bins:
         cfg = replace(cfg, rotation_bins=opts.rotation_bins)
+    if opts.coarse_action_features:
+        cfg = replace(cfg, coarse_action_features=True)
+    if opts.zoom is not None:
+        cfg = replace(cfg, zoom=opts.zoom)
     return replace(cfg, rotation_sigma_deg=opts.rotation_sigma) if opts.rotation_sigma is not None else cfg
 
 

@@ -1,0 +1,91 @@
+"""How far insert_peg's closed loop misses the aligned pose before the hole, and in which direction.
+
+For every insert_peg episode of a policy's `rvt2 eval` journal, its keyframe K (default 2: the first after
+the grasp) against the oracle's aligned pose on the same seed (the last keyframe before the oracle's
+insertion, from an `rvt2 eval --oracle` journal), both expressed in the frame of the box's hole (x along
+the hole's axis, into the box; the seed's scene is reset to find it):
+
+- axial: along the hole's axis (how far before the face);
+- lateral: horizontal, across the axis;
+- vertical;
+- yaw: the turn about the vertical between the two poses.
+
+    python -m benchmarks.aligned_pose_errors POLICY_EVAL_DIR ORACLE_EVAL_DIR [--keyframe 2] [--json out.json]
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from benchmarks.machine import describe
+from rvt2cli.eval.journal import NAME, read_journal
+from rvt2cli.tasks import get_task
+
+
+def _by_seed(folder: str, source: str) -> dict[int, dict]:
+    _, records = read_journal(Path(folder) / NAME)
+    return {r["seed"]: r for r in records if r["task"] == "insert_peg" and r["source"] == source}
+
+
+def _matrix(pose7) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_quat(pose7[3:]).as_matrix()   # x y z w
+    m[:3, 3] = pose7[:3]
+    return m
+
+
+def hole_frame(env, seed: int) -> np.ndarray:
+    env.reset(seed=seed)
+    hole = env.unwrapped.box_hole_pose
+    w, x, y, z = hole.q[0].cpu().numpy()
+    return _matrix([*hole.p[0].cpu().numpy(), x, y, z, w])
+
+
+def measure(policy_dir: str, oracle_dir: str, keyframe: int) -> dict:
+    from rvt2cli.record.scene import make_env
+
+    policy, oracle = _by_seed(policy_dir, "policy"), _by_seed(oracle_dir, "oracle")
+    env = make_env(get_task("insert_peg"), cameras=("front",), image_size=32)
+    rows = []
+    for seed in sorted(set(policy) & set(oracle)):
+        steps, reference = policy[seed]["steps"], oracle[seed]["steps"]
+        if len(steps) <= keyframe or len(reference) < 2:
+            continue
+        hole = np.linalg.inv(hole_frame(env, seed))
+        predicted, wanted = hole @ _matrix(steps[keyframe]["target"]), hole @ _matrix(reference[-2]["target"])
+        offset = (predicted[:3, 3] - wanted[:3, 3]) * 1000
+        turn = Rotation.from_matrix(predicted[:3, :3] @ wanted[:3, :3].T)
+        yaw = np.degrees(np.arctan2(*(turn.as_matrix()[[1, 0], 0])))   # about the hole frame's z (vertical)
+        rows.append({"seed": seed, "axial_mm": offset[0], "lateral_mm": offset[1], "vertical_mm": offset[2],
+                     "distance_mm": float(np.linalg.norm(offset)), "turn_deg": float(np.degrees(turn.magnitude())),
+                     "yaw_deg": float(yaw)})
+    env.close()
+    if not rows:
+        raise SystemExit("aligned_pose_errors: no insert_peg seed is in both journals")
+    summary = {key: float(np.median(np.abs([r[key] for r in rows])))
+               for key in ("axial_mm", "lateral_mm", "vertical_mm", "distance_mm", "turn_deg", "yaw_deg")}
+    return {"episodes": len(rows), "median_abs": summary, "episodes_detail": rows}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("policy", help="an `rvt2 eval --out` folder of a policy")
+    p.add_argument("oracle", help="an `rvt2 eval --oracle --out` folder on the same seeds")
+    p.add_argument("--keyframe", type=int, default=2, help="the policy's keyframe to score (default 2)")
+    p.add_argument("--json", help="write the result here too")
+    args = p.parse_args(argv)
+    result = measure(args.policy, args.oracle, args.keyframe)
+    m = result["median_abs"]
+    print(f"insert_peg, the policy's keyframe {args.keyframe} against the oracle's aligned pose, {result['episodes']} "
+          f"episodes, median of absolute values: {m['distance_mm']:.0f} mm (axial {m['axial_mm']:.0f}, lateral "
+          f"{m['lateral_mm']:.0f}, vertical {m['vertical_mm']:.0f}), turn {m['turn_deg']:.1f} deg "
+          f"(yaw {m['yaw_deg']:.1f})")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": describe(), **result}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
