@@ -21,13 +21,25 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from benchmarks.machine import describe
+from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import NAME, read_journal
 from rvt2cli.tasks import get_task
 
 
 def _by_seed(folder: str, source: str) -> dict[int, dict]:
-    _, records = read_journal(Path(folder) / NAME)
+    path = Path(folder) / NAME
+    if not path.is_file():
+        raise SystemExit(f"aligned_pose_errors: {path}: no evaluation journal; give `rvt2 eval --out` folders")
+    try:
+        _, records = read_journal(path)
+    except UserError as error:
+        raise SystemExit(f"aligned_pose_errors: {error}") from None
     return {r["seed"]: r for r in records if r["task"] == "insert_peg" and r["source"] == source}
+
+
+def _first_tries(record: dict) -> list[dict]:
+    """The episode's keyframes, without the executor's re-tries of the same one."""
+    return [step for step in record["steps"] if step.get("retry", 0) == 0]
 
 
 def _matrix(pose7) -> np.ndarray:
@@ -51,7 +63,7 @@ def measure(policy_dir: str, oracle_dir: str, keyframe: int) -> dict:
     env = make_env(get_task("insert_peg"), cameras=("front",), image_size=32)
     rows = []
     for seed in sorted(set(policy) & set(oracle)):
-        steps, reference = policy[seed]["steps"], oracle[seed]["steps"]
+        steps, reference = _first_tries(policy[seed]), _first_tries(oracle[seed])
         if len(steps) <= keyframe or len(reference) < 2:
             continue
         hole = np.linalg.inv(hole_frame(env, seed))
@@ -74,7 +86,8 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("policy", help="an `rvt2 eval --out` folder of a policy")
     p.add_argument("oracle", help="an `rvt2 eval --oracle --out` folder on the same seeds")
-    p.add_argument("--keyframe", type=int, default=2, help="the policy's keyframe to score (default 2)")
+    p.add_argument("--keyframe", type=int, choices=range(0, 26), default=2, metavar="K",
+                   help="the policy's keyframe to score, from 0 (default 2)")
     p.add_argument("--json", help="write the result here too")
     args = p.parse_args(argv)
     result = measure(args.policy, args.oracle, args.keyframe)

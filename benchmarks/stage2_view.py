@@ -12,7 +12,7 @@ the receptacle) this resets the scene with the demo's seed, samples the object's
 stage-2 box centred on the keyframe's TCP, and in how many episodes none is; rows "before last" and "last"
 gather the insertion and the pose before it whatever their index.
 
-    python -m benchmarks.stage2_view DEMOS_DIR... [--config rvt2] [--json out.json]
+    python -m benchmarks.stage2_view DEMOS_DIR... [--config rvt2] [--zoom Z] [--json out.json]
 """
 
 import argparse
@@ -24,6 +24,7 @@ import numpy as np
 
 from benchmarks.machine import describe
 from rvt2cli.data.reader import read_episode
+from rvt2cli.errors import UserError
 from rvt2cli.model.config import get_config
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.tasks import get_task
@@ -81,22 +82,31 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("demos", nargs="+", help="annotated demo files or folders")
     p.add_argument("--config", default="rvt2", help="the model config whose zoom sets stage 2's box (default rvt2)")
+    p.add_argument("--zoom", type=float, help="stage 2 covers 1/ZOOM of the workspace (default: the config's)")
     p.add_argument("--json", help="write the table here too")
     args = p.parse_args(argv)
+    missing = [d for d in args.demos if not Path(d).exists()]
     paths = sorted(f for d in args.demos for f in ([Path(d)] if Path(d).is_file() else Path(d).glob("*.mcap")))
-    if not paths:
-        raise SystemExit(f"stage2_view: no .mcap files in {' '.join(args.demos)}")
-    bounds = read_episode(paths[0]).meta.scene_bounds
-    half = Workspace.from_bounds(bounds).half_extent / get_config(args.config).zoom
-    table = measure(paths, half)
-    print(f"stage 2 sees +-{half * 1000:.0f} mm around its centre ({args.config}); {describe()}")
+    if missing or not paths:
+        raise SystemExit(f"stage2_view: no such file or folder: {missing[0]}" if missing else
+                         f"stage2_view: no .mcap files in {' '.join(args.demos)}")
+    try:
+        zoom = args.zoom or get_config(args.config).zoom
+        half = Workspace.from_bounds(read_episode(paths[0]).meta.scene_bounds).half_extent / zoom
+        table = measure(paths, half)
+    except (UserError, ValueError) as error:
+        raise SystemExit(f"stage2_view: {error}") from None
+    if not table:
+        raise SystemExit(f"stage2_view: none of these demos is of a task with a goal object ({', '.join(GOAL_OBJECT)})")
+    print(f"stage 2 sees +-{half * 1000:.0f} mm around its centre (zoom {zoom:g}); {describe()}")
     print("| task | keyframe | episodes | share of the goal object's surface in view | episodes with none in view |")
     print("|---|---|---|---|---|")
     for task, rows in table.items():
         for index, row in rows.items():
             print(f"| {task} | {index} | {row['episodes']} | {row['mean_share']:.2f} | {row['episodes_blind']} |")
     if args.json:
-        Path(args.json).write_text(json.dumps({"machine": describe(), "half_extent_m": half, "tasks": table}, indent=1))
+        Path(args.json).write_text(json.dumps({"machine": describe(), "zoom": zoom, "half_extent_m": half, "tasks": table},
+                                              indent=1))
 
 
 if __name__ == "__main__":

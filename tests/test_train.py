@@ -304,10 +304,14 @@ def test_start_share_draws_keyframe_starts_and_is_kept_with_the_run(tiny_dataset
 
 def test_zoom_and_coarse_action_features_are_kept_with_the_run(tiny_dataset, tmp_path, cli):
     """--zoom and --coarse-action-features change the network: the checkpoint's config carries them (so
-    eval, the offline score and export build the same network), and a resume may not change them."""
+    eval, the offline score and export build the same network), a resume may not change them, and a
+    one-stage config refuses them."""
     run_dir = tmp_path / "coarse"
     train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), steps=2, save_every=2, zoom=2.0,
                        coarse_action_features=True, **TINY_TRAIN), say=lambda *_: None)
     policy, ckpt = load_policy(run_dir)   # loads every weight of the wider action head
     assert ckpt.config.zoom == 2.0 and ckpt.config.coarse_action_features and policy.action.reads_coarse
     assert_one_line_error(cli("train", "--out", run_dir, "--resume", "--zoom", "4"), "--zoom 4.0 differs from the run's 2.0")
+    one_stage = cli("train", "--data", tiny_dataset, "--out", tmp_path / "rvt", "--config", "rvt", "--coarse-action-features")
+    assert_one_line_error(one_stage, "--config rvt has one stage")
+    assert not (tmp_path / "rvt").exists()

@@ -27,12 +27,12 @@ def register(subparsers) -> None:
                         "bin (default 0: one bin, as the paper); fine bins learn from their neighbours, and the "
                         "prediction decodes between bin centres (e.g. --rotation-bins 360 --rotation-sigma 2)")
     p.add_argument("--zoom", type=number(1.0, 16.0), metavar="Z",
-                   help="stage 2 sees 1/Z of the workspace around stage 1's point (default 4, as the paper: +-10 cm "
-                        "of the default 0.8 m workspace); 2 sees +-20 cm at half the resolution")
+                   help="two-stage configs: stage 2 sees 1/Z of the workspace around its centre (default 4, as the "
+                        "paper: +-10 cm of the default 0.8 m workspace); 2 sees +-20 cm at half the resolution")
     p.add_argument("--coarse-action-features", action="store_true",
-                   help="the rotation, gripper and collision heads also read stage 1's features, which see the whole "
-                        "scene, not only the +-10 cm stage 2 sees (for targets far from what defines them, such as "
-                        "insert_peg's aligned pose before the box; default: stage 2's alone, as the paper)")
+                   help="two-stage configs: the rotation, gripper and collision heads also read stage 1's features, "
+                        "which see the whole workspace, not only stage 2's box (for targets far from what defines "
+                        "them, such as insert_peg's aligned pose before the box; default: stage 2's alone, as the paper)")
     p.add_argument("--steps", type=COUNT, help=f"optimizer steps (default {T.steps})")
     p.add_argument("--batch-size", type=COUNT, help=f"per device (default {T.batch_size}, as the paper)")
     p.add_argument("--lr", type=POSITIVE, help="peak learning rate (default 1.25e-5 x total batch, as the paper)")

@@ -121,6 +121,9 @@ def model_config(opts: TrainOptions) -> ModelConfig:
     cfg = get_config(opts.config)
     if opts.rotation_bins:
         cfg = replace(cfg, rotation_bins=opts.rotation_bins)
+    if (opts.coarse_action_features or opts.zoom is not None) and cfg.stages == 1:
+        raise UserError(f"--config {opts.config} has one stage: --zoom and --coarse-action-features need a second "
+                        "stage (--config rvt2 or small)")
     if opts.coarse_action_features:
         cfg = replace(cfg, coarse_action_features=True)
     if opts.zoom is not None:

@@ -24,20 +24,25 @@ RUN=${RUN:-v7}
 export HELDOUT_TASKS=${HELDOUT_TASKS:-"insert_peg plug_charger"} HELDOUT_EPISODES=${HELDOUT_EPISODES:-10}
 W=${W:-/tmp/w}
 
+variant_applied() {
+  grep -q GRASP_BEHIND_CENTRE_M rvt2cli/record/experts.py ||
+    { echo "$0: apply benchmarks/results/v7_h200/expert_fixed_offsets.patch first (the expert variant v7 measures)" >&2; exit 2; }
+}
+
 case ${1:-} in
   stash) bash $onebox stash ;;
   start)
+    variant_applied
     bash $onebox stash setup
     bash $onebox bg chain "$self" chain ;;  # in the background: a command ends after 10 minutes
   chain)
-    grep -q GRASP_BEHIND_CENTRE_M rvt2cli/record/experts.py ||
-      { echo "$0: apply benchmarks/results/v7_h200/expert_fixed_offsets.patch first (the expert variant v7 measures)" >&2; exit 2; }
+    variant_applied
     bash $onebox record heldout merged
     RUN=$RUN DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $TRAIN" bash $onebox train
     RUN=$RUN OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline ;;
   collect)
     WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
     RUNS=$RUN bash $onebox results ;;
-  all) bash $onebox setup && bash "$self" chain && RUNS=$RUN bash $onebox results ;;
+  all) variant_applied && bash $onebox setup && bash "$self" chain && RUNS=$RUN bash $onebox results ;;
   *) echo "usage: $0 stash|start|collect|all" >&2; exit 2 ;;
 esac
