@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from benchmarks.machine import describe
 from rvt2cli.errors import UserError
+from rvt2cli.eval.executor import rigid_transform
 from rvt2cli.eval.journal import NAME, read_journal
 from rvt2cli.tasks import get_task
 
@@ -42,18 +43,16 @@ def _first_tries(record: dict) -> list[dict]:
     return [step for step in record["steps"] if step.get("retry", 0) == 0]
 
 
-def _matrix(pose7) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3] = Rotation.from_quat(pose7[3:]).as_matrix()   # x y z w
-    m[:3, 3] = pose7[:3]
-    return m
+def _matrix(target) -> np.ndarray:
+    """A journal's [x y z qx qy qz qw] -> 4x4."""
+    return rigid_transform(target[:3], target[3:])
 
 
 def hole_frame(env, seed: int) -> np.ndarray:
+    from rvt2cli.record.scene import pose7
+
     env.reset(seed=seed)
-    hole = env.unwrapped.box_hole_pose
-    w, x, y, z = hole.q[0].cpu().numpy()
-    return _matrix([*hole.p[0].cpu().numpy(), x, y, z, w])
+    return _matrix(pose7(env.unwrapped.box_hole_pose))
 
 
 def measure(policy_dir: str, oracle_dir: str, keyframe: int) -> dict:

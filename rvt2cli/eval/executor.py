@@ -94,7 +94,7 @@ class StepBudgetExhausted(Exception):
     pass
 
 
-def _transform(position, quaternion_xyzw) -> np.ndarray:
+def rigid_transform(position, quaternion_xyzw) -> np.ndarray:
     """4x4 rigid transform."""
     transform = np.eye(4)
     transform[:3, :3] = Rotation.from_quat(quaternion_xyzw).as_matrix()
@@ -104,7 +104,7 @@ def _transform(position, quaternion_xyzw) -> np.ndarray:
 
 def _mplib_transform(pose: np.ndarray) -> np.ndarray:
     """4x4 transform of a pose as mplib writes it: [x y z qw qx qy qz]."""
-    return _transform(pose[:3], [*pose[4:7], pose[3]])
+    return rigid_transform(pose[:3], [*pose[4:7], pose[3]])
 
 
 def pose_error(pose7: np.ndarray, target: Keyframe) -> tuple[float, float]:
@@ -189,7 +189,7 @@ class Executor:
         those at the gripper's links where they will stand at the target."""
         start = self.link_poses(self.qpos())
         now = self.tcp_pose()
-        move = _transform(target.position, target.quaternion) @ np.linalg.inv(_transform(now[:3], now[3:]))
+        move = rigid_transform(target.position, target.quaternion) @ np.linalg.inv(rigid_transform(now[:3], now[3:]))
         goal = {name: move @ pose for name, pose in start.items() if name in self.geometry.rides_with_tcp}
         near = self.geometry.near(scene_points, start, CLEARANCE) | self.geometry.near(scene_points, goal, CLEARANCE)
         return scene_points[~near]

@@ -67,9 +67,14 @@ def _wxyz_to_xyzw(q) -> np.ndarray:
     return np.array([q[1], q[2], q[3], q[0]])
 
 
+def pose7(pose) -> np.ndarray:
+    """A ManiSkill pose, of the first (only) scene -> [x y z qx qy qz qw]."""
+    raw = pose.raw_pose[0].cpu().numpy()
+    return np.concatenate([raw[:3], _wxyz_to_xyzw(raw[3:])])
+
+
 def tcp_pose(env) -> np.ndarray:
-    raw = env.unwrapped.agent.tcp.pose.raw_pose[0].cpu().numpy()
-    return np.concatenate([raw[:3], _wxyz_to_xyzw(raw[3:])]).astype(np.float32)
+    return pose7(env.unwrapped.agent.tcp.pose).astype(np.float32)
 
 
 def robot_state(env) -> dict:
