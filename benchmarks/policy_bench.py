@@ -43,7 +43,7 @@ def synthetic_train_batch(cfg, batch: int, points: int, device) -> Batch:
     """A training batch of synthetic clouds, stage 2 centred on the target."""
     obs, target, bins, flags = synthetic_batch(cfg, batch, points, device)
     euler_deg = bin_centre_deg(bins.float(), cfg.rotation_bins)
-    return Batch(obs=obs, position=target, rot_bins=bins, euler_deg=euler_deg, gripper=flags[:, 0], collision=flags[:, 1],
+    return Batch(obs=obs, position=target, tcp_position=target, rot_bins=bins, euler_deg=euler_deg, gripper=flags[:, 0], collision=flags[:, 1],
                  quaternion=None, half=None, stage2_center=target)
 
 

@@ -10,9 +10,11 @@ For every annotated demo of a task with a goal object (insert_peg: the box with 
 the receptacle) this resets the scene with the demo's seed, samples the object's oriented bounding box
 (the surface, 6 x 21 x 21 points) and reports, per keyframe index, the share of those points inside the
 stage-2 box centred on the keyframe's TCP, and in how many episodes none is; rows "before last" and "last"
-gather the insertion and the pose before it whatever their index.
+gather the insertion and the pose before it whatever their index. With `--aim-held` the box is centred
+where a policy trained with `rvt2 train --aim-held` centres it: on the task's aim offset (tasks/*.toml)
+for keyframes that follow a closed gripper.
 
-    python -m benchmarks.stage2_view DEMOS_DIR... [--config rvt2] [--zoom Z] [--json out.json]
+    python -m benchmarks.stage2_view DEMOS_DIR... [--config rvt2] [--zoom Z] [--aim-held] [--json out.json]
 """
 
 import argparse
@@ -26,6 +28,7 @@ from benchmarks.machine import describe
 from rvt2cli.data.reader import read_episode
 from rvt2cli.errors import UserError
 from rvt2cli.model.config import get_config
+from rvt2cli.model.observation import aimed_target
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.tasks import get_task
 
@@ -49,7 +52,7 @@ def share_in_view(points: np.ndarray, centre: np.ndarray, half: float) -> float:
     return float(np.mean(np.all(np.abs(points - centre) <= half, axis=1)))
 
 
-def measure(paths: list[Path], half: float) -> dict:
+def measure(paths: list[Path], half: float, aim_held: bool = False) -> dict:
     from rvt2cli.record.scene import make_env
 
     shares: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
@@ -65,8 +68,11 @@ def measure(paths: list[Path], half: float) -> dict:
         env.reset(seed=ep.meta.seed)
         points = surface_points(getattr(env.unwrapped, GOAL_OBJECT[task]))
         keyframes = ep.require_keyframes().keyframes
+        aim = np.asarray(get_task(task).aim_offset) if aim_held else np.zeros(3)
         for index, keyframe in enumerate(keyframes):
-            share = share_in_view(points, np.asarray(keyframe.position), half)
+            holding = index > 0 and not keyframes[index - 1].gripper_open   # observed with the gripper closed
+            centre = aimed_target(keyframe.position, keyframe.quaternion, aim)[0] if holding else np.asarray(keyframe.position)
+            share = share_in_view(points, centre, half)
             shares[task][str(index)].append(share)
             if index >= len(keyframes) - 2:   # the insertion and the pose before it, whatever their index
                 shares[task]["last" if index == len(keyframes) - 1 else "before last"].append(share)
@@ -83,6 +89,7 @@ def main(argv=None) -> None:
     p.add_argument("demos", nargs="+", help="annotated demo files or folders")
     p.add_argument("--config", default="rvt2", help="the model config whose zoom sets stage 2's box (default rvt2)")
     p.add_argument("--zoom", type=float, help="stage 2 covers 1/ZOOM of the workspace (default: the config's)")
+    p.add_argument("--aim-held", action="store_true", help="centre the box on the task's aim offset once the gripper holds")
     p.add_argument("--json", help="write the table here too")
     args = p.parse_args(argv)
     missing = [d for d in args.demos if not Path(d).exists()]
@@ -93,19 +100,21 @@ def main(argv=None) -> None:
     try:
         zoom = args.zoom or get_config(args.config).zoom
         half = Workspace.from_bounds(read_episode(paths[0]).meta.scene_bounds).half_extent / zoom
-        table = measure(paths, half)
+        table = measure(paths, half, args.aim_held)
     except (UserError, ValueError) as error:
         raise SystemExit(f"stage2_view: {error}") from None
     if not table:
         raise SystemExit(f"stage2_view: none of these demos is of a task with a goal object ({', '.join(GOAL_OBJECT)})")
-    print(f"stage 2 sees +-{half * 1000:.0f} mm around its centre (zoom {zoom:g}); {describe()}")
+    centre = "the aim offset once the gripper holds, else the TCP" if args.aim_held else "the TCP"
+    print(f"stage 2 sees +-{half * 1000:.0f} mm around its centre, {centre} (zoom {zoom:g}); {describe()}")
     print("| task | keyframe | episodes | share of the goal object's surface in view | episodes with none in view |")
     print("|---|---|---|---|---|")
     for task, rows in table.items():
         for index, row in rows.items():
             print(f"| {task} | {index} | {row['episodes']} | {row['mean_share']:.2f} | {row['episodes_blind']} |")
     if args.json:
-        Path(args.json).write_text(json.dumps({"machine": describe(), "zoom": zoom, "half_extent_m": half, "tasks": table},
+        Path(args.json).write_text(json.dumps({"machine": describe(), "zoom": zoom, "half_extent_m": half,
+                                               "aim_held": args.aim_held, "tasks": table},
                                               indent=1))
 
 

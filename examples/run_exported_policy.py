@@ -33,6 +33,7 @@ inputs = {
     "proprio": np.array([[1.0, 0.04, 0.04, 1.0]], np.float32),  # gripper open, fingers, start of the episode
     "lang": load_file(str(folder / "instructions.safetensors"))["embeddings"][:1].astype(np.float32),
     "scene_bounds": bounds,
+    "aim_offset": np.asarray(info.get("aim_offset", [0.0, 0.0, 0.0]), np.float32),  # the task's (rvt2 train --aim-held)
 }
 inputs["xyz"][0, :count], inputs["rgb"][0, :count] = xyz[:count], rgb[:count]
 

@@ -38,8 +38,10 @@ __all__ = ["CameraFrame", "Keyframe", "KeyframePolicy"]
 class KeyframePolicy:
     """A trained policy (a checkpoint or an exported folder) answering `predict(frames, ...)`."""
 
-    def __init__(self, tasks: dict[str, list[float]], lang_tokens: int, embeddings: dict[str, torch.Tensor]):
+    def __init__(self, tasks: dict[str, list[float]], lang_tokens: int, embeddings: dict[str, torch.Tensor],
+                 aim_offsets: dict[str, list[float]] | None = None):
         self.tasks = tasks   # task -> scene bounds the policy was trained with
+        self.aim_offsets = aim_offsets or {}  # task -> aim offset (policies trained with --aim-held)
         self.instructions = InstructionCache(lang_tokens, embeddings)
 
     @staticmethod
@@ -76,9 +78,12 @@ class KeyframePolicy:
         bounds = self.scene_bounds(task, scene_bounds)
         cloud = self.cloud(frames, bounds, opencv_intrinsics)
         lang = self.instructions([instruction])[0]
-        return self._predict(cloud, bool(gripper_open), np.asarray(finger_positions, np.float32), int(keyframes_done), lang, bounds)
+        if task is None and len(self.tasks) == 1:
+            task = next(iter(self.tasks))
+        return self._predict(cloud, bool(gripper_open), np.asarray(finger_positions, np.float32), int(keyframes_done), lang, bounds,
+                             self.aim_offsets.get(task))
 
-    def _predict(self, cloud, gripper_open: bool, fingers, keyframes_done: int, lang, bounds) -> Keyframe:
+    def _predict(self, cloud, gripper_open: bool, fingers, keyframes_done: int, lang, bounds, aim_offset) -> Keyframe:
         raise NotImplementedError
 
 
@@ -88,11 +93,12 @@ class _CheckpointPolicy(KeyframePolicy):
         from rvt2cli.train.checkpoint import load_policy
 
         policy, ckpt = load_policy(path, device=device)
-        super().__init__({t: ckpt.scene_bounds(t) for t in ckpt.tasks}, policy.cfg.lang_tokens, ckpt.instruction_embeddings)
+        super().__init__({t: ckpt.scene_bounds(t) for t in ckpt.tasks}, policy.cfg.lang_tokens, ckpt.instruction_embeddings,
+                         ckpt.aim_offsets)
         self.source = PolicySource(policy, ckpt, device)
 
-    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds) -> Keyframe:
-        self.source.use(bounds, lang)
+    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds, aim_offset) -> Keyframe:
+        self.source.use(bounds, lang, aim_offset)
         return self.source.predict(cloud.xyz, cloud.rgb, gripper_open, fingers, keyframes_done)
 
 
@@ -108,16 +114,18 @@ class _ExportedPolicy(KeyframePolicy):
         texts = json.loads((folder / manifest["instructions"]["texts"]).read_text())
         embeddings = load_file(str(folder / manifest["instructions"]["file"]))["embeddings"]
         super().__init__({t: v["scene_bounds"] for t, v in manifest["tasks"].items()}, manifest["config"]["lang_tokens"],
-                         {t: embeddings[i] for i, t in enumerate(texts)})
+                         {t: embeddings[i] for i, t in enumerate(texts)},
+                         {t: v["aim_offset"] for t, v in manifest["tasks"].items() if v.get("aim_offset")})
         self.run = load_exported(folder, manifest)
         self.max_points = manifest["max_points"]
 
-    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds) -> Keyframe:
+    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds, aim_offset) -> Keyframe:
         proprio = proprio_vector(gripper_open, fingers, keyframes_done)
         xyz, rgb, count = fit_points(cloud.xyz, cloud.rgb, self.max_points)
         position, quaternion, gripper_open, ignore_collisions, _ = self.run(
             torch.from_numpy(xyz)[None], colours(torch.from_numpy(rgb))[None], torch.tensor([count]),
-            torch.from_numpy(proprio)[None], lang[None], torch.tensor(bounds, dtype=torch.float32))
+            torch.from_numpy(proprio)[None], lang[None], torch.tensor(bounds, dtype=torch.float32),
+            torch.tensor(aim_offset or [0.0, 0.0, 0.0], dtype=torch.float32))
         return Keyframe.from_pose([*np.asarray(position)[0], *np.asarray(quaternion)[0]], bool(np.asarray(gripper_open)[0] > 0.5),
                                   bool(np.asarray(ignore_collisions)[0] > 0.5))
 

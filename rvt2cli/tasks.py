@@ -34,6 +34,7 @@ class Task:
     planner_speed: float = 0.9         # fraction of the Panda's joint velocity/acceleration limits (as the expert)
     gripper_close: float = -1.0        # the gripper command that closes it (as the expert; some grip softer)
     insertion: bool = False            # the point is fitting a held object into a close fit (failure reasons say how short)
+    aim_offset: tuple[float, ...] = (0.0, 0.0, 0.0)  # m, TCP frame: what the policy aims once it holds (rvt2 train --aim-held)
     env_kwargs: dict = field(default_factory=dict)
 
     def instruction(self, seed: int) -> tuple[str, int]:
@@ -59,12 +60,14 @@ def _parse(text: str, source: str) -> Task:
     unknown = set(raw) - set(Task.__dataclass_fields__)
     if unknown:
         raise UserError(f"{source}: unknown field(s) {', '.join(sorted(unknown))}")
-    for key in ("instructions", "scene_bounds", "cameras", "show_hidden"):
+    for key in ("instructions", "scene_bounds", "cameras", "show_hidden", "aim_offset"):
         if key in raw:
             raw[key] = tuple(raw[key])
     task = Task(**raw)
     if len(task.scene_bounds) != 6:
         raise UserError(f"{source}: scene_bounds needs 6 numbers (xmin ymin zmin xmax ymax zmax)")
+    if len(task.aim_offset) != 3:
+        raise UserError(f"{source}: aim_offset needs 3 numbers (x y z in metres, in the TCP frame)")
     try:
         task.all_instructions()
     except KeyError as e:
@@ -80,6 +83,12 @@ def all_tasks() -> dict[str, Task]:
             task = _parse(entry.read_text(), f"tasks/{entry.name}")
             tasks[task.name] = task
     return tasks
+
+
+def aim_offsets(names) -> dict[str, list[float]]:
+    """The aim offsets that these tasks declare (tasks without one, or unknown here, aim the TCP)."""
+    tasks = all_tasks()
+    return {n: list(tasks[n].aim_offset) for n in names if n in tasks and any(tasks[n].aim_offset)}
 
 
 def get_task(name: str) -> Task:

@@ -27,6 +27,29 @@ def episode(tiny_dataset):
     return read_episode(sorted(tiny_dataset.glob("*.mcap"))[0])
 
 
+AIM = [0.1, 0.0, 0.03]
+
+
+@pytest.fixture(scope="module")
+def aimed_checkpoint(tiny_checkpoint, tmp_path_factory):
+    """The tiny checkpoint as if trained with `--aim-held` and an aim offset for stack_cube (its config
+    says so; the weights are the same)."""
+    import shutil
+
+    from rvt2cli.train.checkpoint import resolve
+
+    aimed = tmp_path_factory.mktemp("aimed") / "checkpoint"
+    shutil.copytree(resolve(tiny_checkpoint[0]), aimed)
+    config = json.loads((aimed / "config.json").read_text())
+    (aimed / "config.json").write_text(json.dumps({**config, "aim_offsets": {"stack_cube": AIM}}))
+    return aimed
+
+
+def holding(episode) -> int:
+    """The first frame at which the gripper is closed (on the cube)."""
+    return next(f for f in range(episode.num_frames) if episode.robot.gripper_command[f] < 0)
+
+
 def frames_of(episode, frame: int, millimetres: bool = False) -> dict[str, CameraFrame]:
     """The episode's cameras as a robot program has them: OpenCV intrinsics, depth in m or mm."""
     out = {}
@@ -58,17 +81,21 @@ def test_checkpoint_predicts_what_eval_predicts(tiny_checkpoint, episode):
     assert np.linalg.norm(np.subtract(mm.position, got.position)) < 0.02 and mm.gripper_open == got.gripper_open
 
 
-def test_exported_folder_predicts_like_the_checkpoint(tiny_checkpoint, episode, tmp_path):
-    run_dir, _ = tiny_checkpoint
-    export_policy(str(run_dir), "onnx", str(tmp_path / "policy"), max_points=20000)
-    fingers = episode.meta.robot.fingers(episode.robot.joint_positions[0], episode.robot.joint_names)
-    args = (frames_of(episode, 0), episode.instruction["text"], True, fingers)
-    exported, checkpoint = KeyframePolicy.load(tmp_path / "policy").predict(*args), KeyframePolicy.load(run_dir).predict(*args)
-    assert np.linalg.norm(np.subtract(exported.position, checkpoint.position)) < 0.001
-    assert np.allclose(np.abs(np.dot(exported.quaternion, checkpoint.quaternion)), 1.0, atol=1e-5)
-    assert (exported.gripper_open, exported.ignore_collisions) == (checkpoint.gripper_open, checkpoint.ignore_collisions)
-    # the example runs on it, as a user would
-    r = subprocess.run([sys.executable, str(EXAMPLE), str(tmp_path / "policy"), str(episode.path)], capture_output=True,
+def test_exported_folder_predicts_like_the_checkpoint(aimed_checkpoint, tiny_dataset, episode, tmp_path):
+    """Exported with its aim offsets (the manifest's, an input of the ONNX graph), the policy answers as
+    the checkpoint does, gripper open (the TCP aimed) and closed (the offset aimed)."""
+    run_dir = aimed_checkpoint
+    export_policy(str(run_dir), "onnx", str(tmp_path / "policy"), max_points=20000, check_data=(str(tiny_dataset),))
+    assert json.loads((tmp_path / "policy" / "manifest.json").read_text())["tasks"]["stack_cube"]["aim_offset"] == AIM
+    for frame, gripper_open in ((0, True), (holding(episode), False)):
+        fingers = episode.meta.robot.fingers(episode.robot.joint_positions[frame], episode.robot.joint_names)
+        args = (frames_of(episode, frame), episode.instruction["text"], gripper_open, fingers)
+        exported, checkpoint = KeyframePolicy.load(tmp_path / "policy").predict(*args), KeyframePolicy.load(run_dir).predict(*args)
+        assert np.linalg.norm(np.subtract(exported.position, checkpoint.position)) < 0.001
+        assert np.allclose(np.abs(np.dot(exported.quaternion, checkpoint.quaternion)), 1.0, atol=1e-5)
+        assert (exported.gripper_open, exported.ignore_collisions) == (checkpoint.gripper_open, checkpoint.ignore_collisions)
+    # the example runs on it, as a user would (at the last frame above, holding)
+    r = subprocess.run([sys.executable, str(EXAMPLE), str(tmp_path / "policy"), str(episode.path), str(frame)], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert np.allclose(json.loads(r.stdout)["position"], exported.position, atol=0.02)
@@ -85,3 +112,22 @@ def test_bad_deployment_input(tiny_checkpoint, episode, tmp_path):
     (tmp_path / "fake" / "manifest.json").write_text("{}")
     with pytest.raises(UserError, match="not a policy written by `rvt2 export`"):
         KeyframePolicy.load(tmp_path / "fake")
+
+
+def test_an_aimed_policy_answers_with_the_tcp_behind_the_aimed_point(tiny_checkpoint, aimed_checkpoint, episode):
+    """Trained with an aim offset, a policy holding something answers with the TCP: the point its
+    heatmaps found less the offset turned by its rotation; the evaluation loop aims alike; open, it aims
+    the TCP itself."""
+    from scipy.spatial.transform import Rotation
+
+    run_dir, _ = tiny_checkpoint
+    frame = holding(episode)
+    fingers = episode.meta.robot.fingers(episode.robot.joint_positions[frame], episode.robot.joint_names)
+    args = (frames_of(episode, frame), episode.instruction["text"], False, fingers)
+    plain, aimed = KeyframePolicy.load(run_dir).predict(*args), KeyframePolicy.load(aimed_checkpoint).predict(*args)
+    assert np.allclose(aimed.quaternion, plain.quaternion)
+    behind = Rotation.from_quat(aimed.quaternion).apply(AIM)
+    assert np.allclose(aimed.position, np.subtract(plain.position, behind), atol=1e-5)
+    assert aimed == expected(aimed_checkpoint, episode, frame)   # rvt2 eval's PolicySource
+    opened = (frames_of(episode, 0), episode.instruction["text"], True, fingers)
+    assert KeyframePolicy.load(aimed_checkpoint).predict(*opened) == KeyframePolicy.load(run_dir).predict(*opened)

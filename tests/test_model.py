@@ -297,3 +297,28 @@ def test_rotation_decoding_places_the_angle_within_its_bin():
     expected = Rotation.from_euler("xyz", euler, degrees=True).as_quat()
     ours = euler_to_quaternion(torch.deg2rad(torch.tensor(euler))).numpy()
     assert np.all(angle_between(ours, expected) < 1e-3)
+
+
+def test_an_aim_puts_the_predicted_tcp_behind_the_aimed_point():
+    """With an aim (rvt2 train --aim-held) the heatmaps' point is where the aim goes; the predicted TCP
+    is that point less the aim turned by the predicted rotation, and nothing else changes."""
+    from scipy.spatial.transform import Rotation
+
+    from rvt2cli.model.observation import aim_vector
+    from rvt2cli.model.rotation import rotate_vectors
+
+    torch.manual_seed(0)
+    policy = RVT2Policy(SMALL).eval()
+    obs = observation(SMALL, batch=2)
+    # one observation holds (gripper closed: aimed), the other does not (the TCP itself)
+    aim = aim_vector(torch.tensor([0.15, 0.0, 0.0]), torch.tensor([False, True]), torch.tensor([0.4, 0.4]))
+    assert torch.allclose(aim, torch.tensor([[0.375, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+    plain = policy.predict(obs)
+    aimed = policy.predict(replace(obs, aim=aim))
+    behind = rotate_vectors(aimed.quaternion, aim)
+    assert torch.allclose(aimed.position, plain.position - behind, atol=1e-6)
+    assert torch.allclose(aimed.stage1_position, plain.stage1_position - behind, atol=1e-6)
+    assert torch.equal(aimed.rot_bins, plain.rot_bins) and torch.equal(aimed.gripper_open, plain.gripper_open)
+    assert torch.equal(aimed.position[1], plain.position[1])
+    expected = Rotation.from_quat(aimed.quaternion.double().numpy()).apply(aim.double().numpy())
+    assert np.allclose(behind.numpy(), expected, atol=1e-6)

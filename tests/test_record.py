@@ -89,6 +89,9 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
 
     view = measure([path], half=0.1)["insert_peg"]
     assert view["last"]["mean_share"] > 0.05 and view["before last"]["episodes_blind"] == 1
+    # centred on the aim offset (rvt2 train --aim-held: 12 cm along the held peg), it sees the box at both
+    aimed = measure([path], half=0.1, aim_held=True)["insert_peg"]
+    assert aimed["before last"]["mean_share"] > 0.05 and aimed["last"]["mean_share"] > 0.05
 
 
 def test_extract_keyframes_cli_continues_past_bad_files(push_cube_dir, tmp_path, cli):

@@ -315,3 +315,42 @@ def test_zoom_and_coarse_action_features_are_kept_with_the_run(tiny_dataset, tmp
     one_stage = cli("train", "--data", tiny_dataset, "--out", tmp_path / "rvt", "--config", "rvt", "--coarse-action-features")
     assert_one_line_error(one_stage, "--config rvt has one stage")
     assert not (tmp_path / "rvt").exists()
+
+
+def test_an_aim_offset_moves_the_held_targets_and_keeps_the_tcp_for_scoring(tiny_dataset):
+    """With aim offsets, a sample observed with the gripper closed targets the aimed point, rigidly ahead
+    of the TCP's target (augmented alike); open-gripper samples target the TCP; the scored target stays
+    the TCP's."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.model.config import SMALL
+    from rvt2cli.train.batches import make_batch, pack
+    from rvt2cli.train.samples import load_samples
+
+    samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
+    lang = torch.zeros(len(samples.instructions), SMALL.lang_tokens, 384)
+    everything = list(range(len(samples)))
+    offset = np.array([0.1, 0.0, 0.02])
+    plain = pack(samples, everything, lang, 2000, "cpu")
+    aimed = pack(samples, everything, lang, 2000, "cpu", aim_offsets={"stack_cube": list(offset)})
+    idx = np.arange(len(samples))
+    held = ~aimed.gripper_open
+    assert held.any() and (~held).any()
+    for generator in (None, torch.Generator().manual_seed(0)):
+        batch = make_batch(aimed, idx, SMALL, generator)
+        metres = aimed.half[aimed.task][:, None]
+        ahead = ((batch.position - batch.tcp_position).numpy() * metres)
+        turned = Rotation.from_quat(batch.quaternion).apply(offset)
+        assert np.allclose(ahead[held], turned[held], atol=1e-5) and np.allclose(ahead[~held], 0.0)
+        assert np.allclose(batch.obs.aim[~held].numpy(), 0.0)
+        assert np.allclose(batch.obs.aim[held].numpy() * metres[held], offset, atol=1e-6)
+    assert torch.allclose(make_batch(aimed, idx, SMALL).tcp_position, make_batch(plain, idx, SMALL).position, atol=1e-6)
+
+
+def test_aim_held_needs_a_task_that_declares_an_aim_offset(tiny_dataset, tmp_path, cli):
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "aim", "--aim-held", "--config", "small", "--steps", "2",
+            "--no-progress")
+    assert_one_line_error(r, "--aim-held", "stack_cube", "aim_offset")
+    assert not (tmp_path / "aim").exists() or not any((tmp_path / "aim").iterdir())

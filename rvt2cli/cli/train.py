@@ -33,6 +33,11 @@ def register(subparsers) -> None:
                    help="two-stage configs: the rotation, gripper and collision heads also read stage 1's features, "
                         "which see the whole workspace, not only stage 2's box (for targets far from what defines "
                         "them, such as insert_peg's aligned pose before the box; default: stage 2's alone, as the paper)")
+    p.add_argument("--aim-held", action="store_true",
+                   help="once the gripper closes, the position heads aim the task's aim_offset (tasks/*.toml: "
+                        "insert_peg's lies 12 cm along the held peg) instead of the TCP, so stage 2 zooms in on the "
+                        "hole the peg goes to, not on free space behind it; the prediction is still the TCP's "
+                        "(default: the TCP throughout, as the paper)")
     p.add_argument("--steps", type=COUNT, help=f"optimizer steps (default {T.steps})")
     p.add_argument("--batch-size", type=COUNT, help=f"per device (default {T.batch_size}, as the paper)")
     p.add_argument("--lr", type=POSITIVE, help="peak learning rate (default 1.25e-5 x total batch, as the paper)")

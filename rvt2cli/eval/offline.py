@@ -48,7 +48,8 @@ def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, devi
     samples = load_samples(paths, include_failures=True, progress=progress, cameras=_cameras(ckpt))
     lang = InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(samples.instructions)
     max_points = int(options.get("max_points") or DEFAULT_MAX_POINTS)
-    packed = pack(samples, list(range(len(samples))), lang, max_points, torch.device(device), seed=0)
+    packed = pack(samples, list(range(len(samples))), lang, max_points, torch.device(device), seed=0,
+                  aim_offsets=ckpt.aim_offsets)
     from tqdm import tqdm
 
     with tqdm(total=len(packed), desc="offline", unit="obs", disable=not progress, dynamic_ncols=True) as bar:

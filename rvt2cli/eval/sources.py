@@ -33,17 +33,19 @@ class PolicySource(KeyframeSource):
         self.instructions = InstructionCache(self.cfg.lang_tokens, checkpoint.instruction_embeddings)
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
-        self.use(self.checkpoint.scene_bounds(task.name), self.instructions([instruction])[0])
+        self.use(self.checkpoint.scene_bounds(task.name), self.instructions([instruction])[0],
+                 self.checkpoint.aim_offset(task.name))
         self.seed = seed
 
-    def use(self, scene_bounds, lang: torch.Tensor) -> None:
-        """Observe the scene within these bounds, for this instruction's embedding [L, LANG_DIM]."""
+    def use(self, scene_bounds, lang: torch.Tensor, aim_offset=None) -> None:
+        """Observe the scene within these bounds, for this instruction's embedding [L, LANG_DIM], aiming
+        `aim_offset` once the gripper holds (a policy trained with one)."""
         self.workspace = Workspace.from_bounds(scene_bounds)
-        self.lang = lang
+        self.lang, self.aim_offset = lang, aim_offset
 
     def observation(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Observation:
         return observe(xyz, rgb, proprio_vector(gripper_open, finger_positions, keyframes_done), self.lang,
-                       self.workspace, self.device)
+                       self.workspace, self.device, self.aim_offset)
 
     def predict(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Keyframe:
         pred = self.policy.predict(self.observation(xyz, rgb, gripper_open, finger_positions, keyframes_done))

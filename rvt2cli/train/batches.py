@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from rvt2cli.model.config import ModelConfig
-from rvt2cli.model.observation import Observation, colours, fit_points
+from rvt2cli.model.observation import Observation, aim_vector, aimed_target, colours, fit_points
 from rvt2cli.model.rotation import euler_to_bins, quaternion_to_euler
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation, yaw_matrices
@@ -39,12 +39,16 @@ class PackedSamples:
     half: np.ndarray           # [T] workspace half extent per task
     lo: np.ndarray             # [T, 3] scene bounds per task
     hi: np.ndarray
+    gripper_open: np.ndarray   # [S] bool: the gripper at the observation (proprio)
+    aim_offset: np.ndarray | None = None  # [T, 3] m, TCP frame, per task (rvt2 train --aim-held); None: the TCP
 
     def __len__(self) -> int:
         return len(self.count)
 
 
-def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points: int, device, seed: int = 0) -> PackedSamples:
+def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points: int, device, seed: int = 0,
+         aim_offsets: dict[str, list[float]] | None = None) -> PackedSamples:
+    """`aim_offsets`: task -> aim offset (m, TCP frame) of a policy trained with them (tasks left out: none)."""
     rng = np.random.default_rng(seed)
     n = len(indices)
     xyz = np.zeros((n, max_points, 3), np.float32)
@@ -72,6 +76,8 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
         target_collision=np.asarray(samples.target_ignore_collisions, np.int64)[pick],
         center=np.array([w.center for w in workspaces]), half=np.array([w.half_extent for w in workspaces]),
         lo=np.array([samples.bounds[t][:3] for t in samples.tasks]), hi=np.array([samples.bounds[t][3:] for t in samples.tasks]),
+        gripper_open=np.array([samples.proprio[i][0] > 0.5 for i in indices], bool),
+        aim_offset=None if aim_offsets is None else np.array([aim_offsets.get(t, (0.0, 0.0, 0.0)) for t in samples.tasks], np.float64),
     )
 
 
@@ -108,7 +114,8 @@ class TaskUniformSampler:
 @dataclass
 class Batch:
     obs: Observation
-    position: torch.Tensor       # [B, 3] cube coordinates
+    position: torch.Tensor       # [B, 3] cube coordinates of the aim's target (the TCP's without an aim)
+    tcp_position: torch.Tensor   # [B, 3] cube coordinates of the TCP's target
     rot_bins: torch.Tensor       # [B, 3]
     euler_deg: torch.Tensor      # [B, 3] the target's Euler angles (soft rotation targets)
     gripper: torch.Tensor        # [B]
@@ -133,6 +140,10 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
     tasks = packed.task[idx]
     center, half, lo, hi = packed.center[tasks], packed.half[tasks], packed.lo[tasks], packed.hi[tasks]
     position, quaternion = packed.target_position[idx], packed.target_quaternion[idx]
+    aim = None if packed.aim_offset is None else aim_vector(torch.from_numpy(packed.aim_offset[tasks]),
+                                                            torch.from_numpy(packed.gripper_open[idx]), torch.from_numpy(half)).numpy()
+    if aim is not None:  # the target is where the aim goes, rigidly attached to the TCP's: augmented alike
+        position = aimed_target(position, quaternion, aim * half[:, None])
     index = to_device(np.asarray(idx, np.int64), device)
     xyz = packed.xyz[index]
     center_t = to_device(center.astype(np.float32), device)
@@ -141,13 +152,16 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
         position, quaternion, yaw, shift = augment_targets(position, quaternion, center, lo, hi, yaw, shift)
         xyz = augment_points(xyz, center_t, to_device(yaw_matrices(yaw).astype(np.float32), device),
                              to_device(shift.astype(np.float32), device))
+    tcp = position if aim is None else aimed_target(position, quaternion, -aim * half[:, None])
     half_t = to_device(half.astype(np.float32), device)[:, None, None]
     points = (xyz - center_t[:, None]) / half_t
     obs = Observation(points=points, rgb=colours(packed.rgb[index]), num_points=packed.count[index],
-                      proprio=packed.proprio[index], lang=packed.lang[packed.instruction[index]])
+                      proprio=packed.proprio[index], lang=packed.lang[packed.instruction[index]],
+                      aim=None if aim is None else to_device(aim, device))
     position_cube = ((position - center) / half[:, None]).astype(np.float32)
     euler = quaternion_to_euler(quaternion)
     batch = Batch(obs=obs, position=to_device(position_cube, device),
+                  tcp_position=to_device(((tcp - center) / half[:, None]).astype(np.float32), device),
                   rot_bins=to_device(euler_to_bins(euler, cfg.rotation_bins), device),
                   euler_deg=to_device(euler.astype(np.float32), device),
                   gripper=to_device(packed.target_gripper[idx], device),

@@ -43,6 +43,15 @@ class Checkpoint:
     def tasks(self) -> list[str]:
         return list(self.info.get("tasks", []))
 
+    @property
+    def aim_offsets(self) -> dict[str, list[float]] | None:
+        """Task -> aim offset (m, TCP frame) of a policy trained with `--aim-held`; None: it aims the TCP."""
+        return self.info.get("aim_offsets")
+
+    def aim_offset(self, task: str) -> list[float] | None:
+        """This task's aim offset, where the policy was trained with one."""
+        return (self.aim_offsets or {}).get(task)
+
     def scene_bounds(self, task: str) -> list[float]:
         """The bounds the policy saw this task with; for a task it was not trained on, the task's own."""
         if task in self.info.get("bounds", {}):

@@ -58,8 +58,8 @@ def score_predictions(policy, packed: PackedSamples, indices=None, batch_size: i
         with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=autocast):
             pred = policy.predict(batch.obs)
         metres = batch.half[:, None] * 1000.0
-        parts["stage1_mm"].append((pred.stage1_position.float() - batch.position).norm(dim=-1).cpu().numpy() * metres[:, 0])
-        parts["stage2_mm"].append((pred.position.float() - batch.position).norm(dim=-1).cpu().numpy() * metres[:, 0])
+        parts["stage1_mm"].append((pred.stage1_position.float() - batch.tcp_position).norm(dim=-1).cpu().numpy() * metres[:, 0])
+        parts["stage2_mm"].append((pred.position.float() - batch.tcp_position).norm(dim=-1).cpu().numpy() * metres[:, 0])
         parts["rotation_deg"].append(angle_between(pred.quaternion.float().cpu().numpy(), batch.quaternion))
         parts["gripper_ok"].append((pred.gripper_open.long() == batch.gripper).cpu().numpy())
         parts["collision_ok"].append((pred.ignore_collisions.long() == batch.collision).cpu().numpy())

@@ -16,6 +16,7 @@ class TrainOptions:
     rotation_bins: int | None = None  # Euler-angle bins per axis; None: the config's (72, 5 degrees, as the paper)
     rotation_sigma: float | None = None  # degrees: Gaussian rotation targets this wide; None: the config's (one bin)
     coarse_action_features: bool = False  # the action head also reads stage 1's features (ModelConfig)
+    aim_held: bool = False           # once it holds, aim the task's aim_offset instead of the TCP (tasks/*.toml)
     zoom: float | None = None        # stage 2 covers 1/zoom of the workspace; None: the config's (4, as the paper)
     steps: int = 10_000
     batch_size: int = 24
@@ -59,7 +60,7 @@ class TrainOptions:
 
 
 # Options a resumed run must keep (they decide the data, the model, the optimiser or the schedule).
-RUN_DEFINING = ("data", "config", "rotation_bins", "rotation_sigma", "coarse_action_features", "zoom", "steps", "batch_size", "lr", "weight_decay", "warmup", "clip", "max_points", "augment",
+RUN_DEFINING = ("data", "config", "rotation_bins", "rotation_sigma", "coarse_action_features", "aim_held", "zoom", "steps", "batch_size", "lr", "weight_decay", "warmup", "clip", "max_points", "augment",
                 "seed", "val_episodes", "max_bad_steps", "include_failures", "episodes_per_task", "keyframe_starts_only",
                 "start_share",
                 "cameras", "amp", "eight_bit")

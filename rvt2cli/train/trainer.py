@@ -36,6 +36,7 @@ from rvt2cli.train.options import TrainOptions, conflicts
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
 from rvt2cli.train.samples import SampleSet, load_samples, select_samples
 from rvt2cli.train.step import TrainStep
+from rvt2cli.tasks import aim_offsets
 
 __all__ = ["TrainOptions", "TrainResult", "train"]
 
@@ -188,8 +189,12 @@ def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         known = {**known, **resume.instruction_embeddings}
     cache = InstructionCache(cfg.lang_tokens, known)
     lang = cache(samples.instructions)
-    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed)
-    packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed) if val_idx else None
+    aims = aim_offsets(samples.tasks) if opts.aim_held else None
+    if aims == {}:
+        raise UserError(f"--aim-held: none of the tasks ({', '.join(samples.tasks)}) declares an aim_offset in its "
+                        "tasks/*.toml; add one (m, in the TCP frame) or leave the flag out")
+    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims)
+    packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims) if val_idx else None
     used_episodes = len({samples.episode_index[i] for i in selected})
     say(f"data: {len(selected)} samples from {used_episodes} episodes of {len(samples.tasks)} task(s) "
         f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
@@ -372,6 +377,8 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share)
     samples = data.samples
     info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs, "options": opts.to_json()}
+    if data.packed.aim_offset is not None:
+        info["aim_offsets"] = aim_offsets(samples.tasks)
     log = RunLog(run_dir, state.step) if rank == 0 else None
     if rank == 0 and not opts.resume:
         used = sorted({samples.episodes[samples.episode_index[i]] for i in data.selected})

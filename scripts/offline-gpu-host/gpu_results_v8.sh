@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Results v8 (docs/RESULTS.md) on one machine with one GPU (an NVIDIA H100 or H200 with 16 CPU cores):
+# results v6's recipe (gpu_results_v6.sh: 8 tasks x 25 demos, refinements merged, batch 192, 1,200 steps,
+# --rotation-bins 360 --rotation-sigma 2 --start-share 0.5, 50 seeds per task, 2 x 10 held-out insertion
+# demos) trained with `--aim-held --coarse-action-features`: once it holds the peg, the policy aims insert_peg's
+# aim offset (12 cm along the peg, tasks/insert_peg.toml) instead of the TCP, and its heads also read stage 1.
+# Set TRAIN to add or drop options. Unlike v6's script it trains no 10-demo model.
+#
+# On a one-GPU workstation with rvt2 and its simulator installed: `bash scripts/offline-gpu-host/gpu_results_v8.sh all`.
+# On a GPU machine without network access, one command per step: `stash` carrying each .gpu/site.part.*
+# piece but the last, `start` carrying the last piece and .gl (everything runs in the background), then
+# `collect` (waits up to WAIT_S seconds and packs whatever reports exist into results.tgz) until the log
+# says the chain is done.
+#
+# The 2-task proxy (insert_peg and plug_charger, 25 demos each, refinements merged, no held-out demos),
+# for a machine with less time: `TASKS="insert_peg plug_charger" STEPS=600 EVAL_EPISODES=30 RUN=v8_proxy`
+# with `proxy-start` in place of `start` (and `proxy` in place of `all`), then `collect` as above.
+set -euo pipefail
+cd "$(dirname "$0")/../.."   # the repository root
+export WORKERS=${WORKERS:-14}
+onebox=scripts/offline-gpu-host/gpu_onebox.sh
+self=scripts/offline-gpu-host/$(basename "$0")
+COMPILE=${COMPILE---compile}          # a dry run on a CPU: COMPILE= STEPS=8 EVAL_EPISODES=1 (and gpu_onebox.sh's settings)
+export STEPS=${STEPS:-1200}
+TRAIN=${TRAIN:---rotation-bins 360 --rotation-sigma 2 --start-share 0.5 --aim-held --coarse-action-features}
+RUN=${RUN:-v8}
+export HELDOUT_TASKS=${HELDOUT_TASKS:-"insert_peg plug_charger"} HELDOUT_EPISODES=${HELDOUT_EPISODES:-10}
+W=${W:-/tmp/w}
+
+case ${1:-} in
+  stash) bash $onebox stash ;;
+  start)
+    bash $onebox stash setup
+    bash $onebox bg chain "$self" chain ;;  # in the background: a command ends after 10 minutes
+  chain)
+    bash $onebox record heldout merged
+    RUN=$RUN DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $TRAIN" bash $onebox train
+    RUN=$RUN OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline ;;
+  proxy-start)
+    bash $onebox stash setup
+    bash $onebox bg chain "$self" proxy-chain ;;
+  proxy-chain)
+    bash $onebox record merged
+    RUN=$RUN DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $TRAIN" bash $onebox train
+    RUN=$RUN bash $onebox eval ;;
+  proxy) bash $onebox setup && bash "$self" proxy-chain && RUNS=$RUN bash $onebox results ;;
+  collect)
+    WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
+    RUNS=$RUN bash $onebox results ;;
+  all) bash $onebox setup && bash "$self" chain && RUNS=$RUN bash $onebox results ;;
+  *) echo "usage: $0 stash|start|proxy-start|collect|all|proxy" >&2; exit 2 ;;
+esac
