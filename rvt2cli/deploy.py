@@ -111,6 +111,9 @@ class _ExportedPolicy(KeyframePolicy):
         if not is_export(folder):
             raise UserError(f"{folder}: not a policy written by `rvt2 export` (its manifest.json is not one)")
         manifest = json.loads((folder / "manifest.json").read_text())
+        if "aim_offset" not in manifest.get("inputs", {}):
+            raise UserError(f"{folder}: exported by an older rvt2 (its policy has no aim_offset input); "
+                            "export the checkpoint again with `rvt2 export`")
         texts = json.loads((folder / manifest["instructions"]["texts"]).read_text())
         embeddings = load_file(str(folder / manifest["instructions"]["file"]))["embeddings"]
         super().__init__({t: v["scene_bounds"] for t, v in manifest["tasks"].items()}, manifest["config"]["lang_tokens"],

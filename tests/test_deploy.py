@@ -99,6 +99,15 @@ def test_exported_folder_predicts_like_the_checkpoint(aimed_checkpoint, tiny_dat
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert np.allclose(json.loads(r.stdout)["position"], exported.position, atol=0.02)
+    # an export from before the aim_offset input is refused in one line, not run with the wrong inputs
+    import shutil
+
+    shutil.copytree(tmp_path / "policy", tmp_path / "old")
+    manifest = json.loads((tmp_path / "old" / "manifest.json").read_text())
+    del manifest["inputs"]["aim_offset"]
+    (tmp_path / "old" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(UserError, match="older rvt2"):
+        KeyframePolicy.load(tmp_path / "old")
 
 
 def test_bad_deployment_input(tiny_checkpoint, episode, tmp_path):
