@@ -23,12 +23,13 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from benchmarks.machine import describe
 from rvt2cli.data.reader import read_episode
 from rvt2cli.errors import UserError
 from rvt2cli.model.config import get_config
-from rvt2cli.model.observation import aimed_target
+from rvt2cli.model.observation import aim_vector, aimed_target
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.tasks import get_task
 
@@ -68,10 +69,11 @@ def measure(paths: list[Path], half: float, aim_held: bool = False) -> dict:
         env.reset(seed=ep.meta.seed)
         points = surface_points(getattr(env.unwrapped, GOAL_OBJECT[task]))
         keyframes = ep.require_keyframes().keyframes
-        aim = np.asarray(get_task(task).aim_offset) if aim_held else np.zeros(3)
+        offset = torch.tensor(get_task(task).aim_offset if aim_held else (0.0, 0.0, 0.0))
         for index, keyframe in enumerate(keyframes):
-            holding = index > 0 and not keyframes[index - 1].gripper_open   # observed with the gripper closed
-            centre = aimed_target(keyframe.position, keyframe.quaternion, aim)[0] if holding else np.asarray(keyframe.position)
+            observed_open = index == 0 or keyframes[index - 1].gripper_open   # the gripper where it is predicted
+            aim = aim_vector(offset, torch.tensor([observed_open]), 1.0)[0].numpy()   # metres: the policy's rule
+            centre = aimed_target(keyframe.position, keyframe.quaternion, aim)[0]
             share = share_in_view(points, centre, half)
             shares[task][str(index)].append(share)
             if index >= len(keyframes) - 2:   # the insertion and the pose before it, whatever their index

@@ -51,11 +51,14 @@ class KeyframePolicy:
             return _ExportedPolicy(path)
         return _CheckpointPolicy(path, device)
 
+    def default_task(self, task: str | None) -> str | None:
+        """`task`, or the policy's only task when none is given."""
+        return next(iter(self.tasks)) if task is None and len(self.tasks) == 1 else task
+
     def scene_bounds(self, task: str | None, scene_bounds=None) -> list[float]:
         if scene_bounds is not None:
             return [float(v) for v in scene_bounds]
-        if task is None and len(self.tasks) == 1:
-            task = next(iter(self.tasks))
+        task = self.default_task(task)
         if task not in self.tasks:
             raise UserError(f"give task= (one of {', '.join(self.tasks)}) or scene_bounds= for this policy")
         return list(self.tasks[task])
@@ -78,10 +81,8 @@ class KeyframePolicy:
         bounds = self.scene_bounds(task, scene_bounds)
         cloud = self.cloud(frames, bounds, opencv_intrinsics)
         lang = self.instructions([instruction])[0]
-        if task is None and len(self.tasks) == 1:
-            task = next(iter(self.tasks))
         return self._predict(cloud, bool(gripper_open), np.asarray(finger_positions, np.float32), int(keyframes_done), lang, bounds,
-                             self.aim_offsets.get(task))
+                             self.aim_offsets.get(self.default_task(task)))
 
     def _predict(self, cloud, gripper_open: bool, fingers, keyframes_done: int, lang, bounds, aim_offset) -> Keyframe:
         raise NotImplementedError

@@ -175,6 +175,7 @@ class TrainingData:
     packed: PackedSamples
     packed_val: PackedSamples | None
     instructions: InstructionCache
+    aim_offsets: dict[str, list[float]] | None = None   # what the targets aim at (--aim-held), per task
 
 
 def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resume: Checkpoint | None, say) -> TrainingData:
@@ -200,7 +201,7 @@ def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
         + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
         + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else ""))
-    return TrainingData(samples, selected, packed, packed_val, cache)
+    return TrainingData(samples, selected, packed, packed_val, cache, aims)
 
 
 def count_flops(policy: RVT2Policy, packed, device) -> float | None:
@@ -377,8 +378,8 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share)
     samples = data.samples
     info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs, "options": opts.to_json()}
-    if data.packed.aim_offset is not None:
-        info["aim_offsets"] = aim_offsets(samples.tasks)
+    if data.aim_offsets is not None:
+        info["aim_offsets"] = data.aim_offsets
     log = RunLog(run_dir, state.step) if rank == 0 else None
     if rank == 0 and not opts.resume:
         used = sorted({samples.episodes[samples.episode_index[i]] for i in data.selected})
