@@ -2,8 +2,9 @@
 
 For every insert_peg episode of a policy's `rvt2 eval` journal, its keyframe K (default 2: the first after
 the grasp) against the oracle's aligned pose on the same seed (the last keyframe before the oracle's
-insertion, from an `rvt2 eval --oracle` journal), both expressed in the frame of the box's hole (x along
-the hole's axis, into the box; the seed's scene is reset to find it):
+insertion, from an `rvt2 eval --oracle` journal) or, with `--insertion`, its keyframe K (then 3) against
+the oracle's insertion (its last keyframe), both expressed in the frame of the box's hole (x along the
+hole's axis, into the box; the seed's scene is reset to find it):
 
 - axial: along the hole's axis (how far before the face);
 - lateral: horizontal, across the axis;
@@ -11,6 +12,7 @@ the hole's axis, into the box; the seed's scene is reset to find it):
 - yaw: the turn about the vertical between the two poses.
 
     python -m benchmarks.aligned_pose_errors POLICY_EVAL_DIR ORACLE_EVAL_DIR [--keyframe 2] [--json out.json]
+    python -m benchmarks.aligned_pose_errors POLICY_EVAL_DIR ORACLE_EVAL_DIR --insertion   # keyframe 3, the insertion
 """
 
 import argparse
@@ -55,7 +57,7 @@ def hole_frame(env, seed: int) -> np.ndarray:
     return _matrix(pose7(env.unwrapped.box_hole_pose))
 
 
-def measure(policy_dir: str, oracle_dir: str, keyframe: int) -> dict:
+def measure(policy_dir: str, oracle_dir: str, keyframe: int, insertion: bool = False) -> dict:
     from rvt2cli.record.scene import make_env
 
     policy, oracle = _by_seed(policy_dir, "policy"), _by_seed(oracle_dir, "oracle")
@@ -66,7 +68,8 @@ def measure(policy_dir: str, oracle_dir: str, keyframe: int) -> dict:
         if len(steps) <= keyframe or len(reference) < 2:
             continue
         hole = np.linalg.inv(hole_frame(env, seed))
-        predicted, wanted = hole @ _matrix(steps[keyframe]["target"]), hole @ _matrix(reference[-2]["target"])
+        wanted = hole @ _matrix(reference[-1 if insertion else -2]["target"])
+        predicted = hole @ _matrix(steps[keyframe]["target"])
         offset = (predicted[:3, 3] - wanted[:3, 3]) * 1000
         turn = Rotation.from_matrix(predicted[:3, :3] @ wanted[:3, :3].T)
         yaw = np.degrees(np.arctan2(*(turn.as_matrix()[[1, 0], 0])))   # about the hole frame's z (vertical)
@@ -85,18 +88,21 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("policy", help="an `rvt2 eval --out` folder of a policy")
     p.add_argument("oracle", help="an `rvt2 eval --oracle --out` folder on the same seeds")
-    p.add_argument("--keyframe", type=int, choices=range(0, 26), default=2, metavar="K",
-                   help="the policy's keyframe to score, from 0 (default 2)")
+    p.add_argument("--keyframe", type=int, choices=range(0, 26), default=None, metavar="K",
+                   help="the policy's keyframe to score, from 0 (default 2; with --insertion 3)")
+    p.add_argument("--insertion", action="store_true", help="against the oracle's insertion instead of its aligned pose")
     p.add_argument("--json", help="write the result here too")
     args = p.parse_args(argv)
-    result = measure(args.policy, args.oracle, args.keyframe)
+    keyframe = args.keyframe if args.keyframe is not None else (3 if args.insertion else 2)
+    result = measure(args.policy, args.oracle, keyframe, args.insertion)
     m = result["median_abs"]
-    print(f"insert_peg, the policy's keyframe {args.keyframe} against the oracle's aligned pose, {result['episodes']} "
+    wanted = "insertion" if args.insertion else "aligned pose"
+    print(f"insert_peg, the policy's keyframe {keyframe} against the oracle's {wanted}, {result['episodes']} "
           f"episodes, median of absolute values: {m['distance_mm']:.0f} mm (axial {m['axial_mm']:.0f}, lateral "
           f"{m['lateral_mm']:.0f}, vertical {m['vertical_mm']:.0f}), turn {m['turn_deg']:.1f} deg "
           f"(yaw {m['yaw_deg']:.1f})")
     if args.json:
-        Path(args.json).write_text(json.dumps({"machine": describe(), **result}, indent=1))
+        Path(args.json).write_text(json.dumps({"machine": describe(), "keyframe": keyframe, "against": wanted, **result}, indent=1))
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ from rvt2cli.data.fusion import depth_in_metres, fuse, intrinsic_from_opencv
 from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.errors import UserError
 from rvt2cli.model.language import InstructionCache
-from rvt2cli.model.observation import colours, fit_points, proprio_vector
+from rvt2cli.model.observation import aim_offset_or_tcp, colours, fit_points, proprio_vector
 
 __all__ = ["CameraFrame", "Keyframe", "KeyframePolicy"]
 
@@ -129,7 +129,7 @@ class _ExportedPolicy(KeyframePolicy):
         position, quaternion, gripper_open, ignore_collisions, _ = self.run(
             torch.from_numpy(xyz)[None], colours(torch.from_numpy(rgb))[None], torch.tensor([count]),
             torch.from_numpy(proprio)[None], lang[None], torch.tensor(bounds, dtype=torch.float32),
-            torch.tensor(aim_offset or [0.0, 0.0, 0.0], dtype=torch.float32))
+            torch.tensor(aim_offset_or_tcp(aim_offset), dtype=torch.float32))
         return Keyframe.from_pose([*np.asarray(position)[0], *np.asarray(quaternion)[0]], bool(np.asarray(gripper_open)[0] > 0.5),
                                   bool(np.asarray(ignore_collisions)[0] > 0.5))
 

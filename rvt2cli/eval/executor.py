@@ -107,6 +107,19 @@ def _mplib_transform(pose: np.ndarray) -> np.ndarray:
     return rigid_transform(pose[:3], [*pose[4:7], pose[3]])
 
 
+def _timed_path(plan) -> dict | None:
+    """mplib's result of `plan()` if it found a path and timed it, else None. Its TOPP-RA step raises on
+    a path it cannot time within the joints' speed and acceleration limits ("Fail to parameterize path");
+    for the executor that is one more path it cannot follow, not a broken episode."""
+    try:
+        result = plan()
+    except RuntimeError as error:
+        if "parameterize" not in str(error):
+            raise
+        return None
+    return result if result["status"] == "Success" else None
+
+
 def pose_error(pose7: np.ndarray, target: Keyframe) -> tuple[float, float]:
     """(position error in m, rotation error in degrees) of a TCP pose [x y z qx qy qz qw] to a keyframe."""
     position = float(np.linalg.norm(np.asarray(pose7[:3]) - np.asarray(target.position)))
@@ -207,13 +220,13 @@ class Executor:
             if avoid:
                 self.planner.update_point_cloud(kept, radius=COLLISION_RESOLUTION)
                 self.start_collided = self.start_collided or self._start_in_collision()
-        result = self.planner.plan_screw(goal, self.qpos(), qpos_step=SCREW_STEP, time_step=self.time_step,
-                                         use_point_cloud=avoid)
-        if result["status"] == "Success":
+        result = _timed_path(lambda: self.planner.plan_screw(goal, self.qpos(), qpos_step=SCREW_STEP,
+                                                             time_step=self.time_step, use_point_cloud=avoid))
+        if result is not None:
             return "screw", result
-        result = self.planner.plan_qpos_to_pose(goal, self.qpos(), time_step=self.time_step, use_point_cloud=avoid,
-                                                wrt_world=True)
-        if result["status"] == "Success":
+        result = _timed_path(lambda: self.planner.plan_qpos_to_pose(goal, self.qpos(), time_step=self.time_step,
+                                                                    use_point_cloud=avoid, wrt_world=True))
+        if result is not None:
             return "rrt", result
         return None
 

@@ -27,7 +27,7 @@ from rvt2cli import __version__
 from rvt2cli.atomic import atomic_folder
 from rvt2cli.errors import UserError
 from rvt2cli.export.deployable import INPUT_NAMES, OUTPUT_NAMES, DeployablePolicy, example_inputs
-from rvt2cli.model.observation import LANG_DIM, PROPRIO_DIM, colours, fit_points
+from rvt2cli.model.observation import LANG_DIM, PROPRIO_DIM, aim_offset_or_tcp, colours, fit_points
 from rvt2cli.train.checkpoint import load_policy
 
 FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
@@ -125,7 +125,7 @@ def _parity_inputs(ckpt, cfg, max_points: int, check_data, limit: int = 4) -> li
         inputs.append((torch.from_numpy(xyz)[None], colours(torch.from_numpy(rgb))[None], torch.tensor([count]),
                        torch.from_numpy(samples.proprio[i])[None], cache([samples.instructions[samples.instruction_index[i]]]),
                        torch.tensor(samples.bounds[task], dtype=torch.float32),
-                       torch.tensor(ckpt.aim_offset(task) or [0.0, 0.0, 0.0], dtype=torch.float32)))
+                       torch.tensor(aim_offset_or_tcp(ckpt.aim_offset(task)), dtype=torch.float32)))
     return inputs
 
 
@@ -172,7 +172,7 @@ def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000,
         manifest = {
             "rvt2_version": __version__, "format": fmt, "file": file, "checkpoint": str(ckpt.path), "step": ckpt.info.get("step"),
             "config": cfg.to_dict(), "max_points": max_points,
-            "tasks": {t: {"scene_bounds": ckpt.scene_bounds(t), "aim_offset": ckpt.aim_offset(t) or [0.0, 0.0, 0.0]}
+            "tasks": {t: {"scene_bounds": ckpt.scene_bounds(t), "aim_offset": aim_offset_or_tcp(ckpt.aim_offset(t))}
                       for t in ckpt.tasks},
             **_input_spec(cfg, max_points),
             "instructions": {"file": "instructions.safetensors", "texts": "instructions.json",

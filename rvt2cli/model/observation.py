@@ -63,6 +63,14 @@ def aim_vector(aim_offset_m: torch.Tensor, gripper_open: torch.Tensor, half_exte
     return aim_offset_m.to(torch.float32) * closed / half
 
 
+TCP_AIM = (0.0, 0.0, 0.0)  # the aim offset of a task without one: the position heads aim the TCP itself
+
+
+def aim_offset_or_tcp(aim_offset) -> list[float]:
+    """A task's aim offset as an exported policy's `aim_offset` input takes it: zeros where it has none."""
+    return list(aim_offset) if aim_offset else list(TCP_AIM)
+
+
 def aimed_target(tcp_position: np.ndarray, quaternion_xyzw: np.ndarray, aim_m: np.ndarray) -> np.ndarray:
     """Where the aim (m, TCP frame; [B, 3] or [3]) lies when the TCP is at these targets ([B, 3], [B, 4])."""
     from scipy.spatial.transform import Rotation

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from rvt2cli.model.config import ModelConfig
-from rvt2cli.model.observation import Observation, aim_vector, aimed_target, colours, fit_points
+from rvt2cli.model.observation import TCP_AIM, Observation, aim_vector, aimed_target, colours, fit_points
 from rvt2cli.model.rotation import euler_to_bins, quaternion_to_euler
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation, yaw_matrices
@@ -77,7 +77,7 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
         center=np.array([w.center for w in workspaces]), half=np.array([w.half_extent for w in workspaces]),
         lo=np.array([samples.bounds[t][:3] for t in samples.tasks]), hi=np.array([samples.bounds[t][3:] for t in samples.tasks]),
         gripper_open=np.array([samples.proprio[i][0] > 0.5 for i in indices], bool),
-        aim_offset=None if aim_offsets is None else np.array([aim_offsets.get(t, (0.0, 0.0, 0.0)) for t in samples.tasks], np.float64),
+        aim_offset=None if aim_offsets is None else np.array([aim_offsets.get(t, TCP_AIM) for t in samples.tasks], np.float64),
     )
 
 

@@ -190,7 +190,9 @@ def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         known = {**known, **resume.instruction_embeddings}
     cache = InstructionCache(cfg.lang_tokens, known)
     lang = cache(samples.instructions)
-    aims = aim_offsets(samples.tasks) if opts.aim_held else None
+    aims = None
+    if opts.aim_held:  # a resumed run keeps the offsets it began with, whatever tasks/*.toml says now
+        aims = resume.aim_offsets if resume is not None and resume.aim_offsets is not None else aim_offsets(samples.tasks)
     if aims == {}:
         raise UserError(f"--aim-held: none of the tasks ({', '.join(samples.tasks)}) declares an aim_offset in its "
                         "tasks/*.toml; add one (m, in the TCP frame) or leave the flag out")
