@@ -31,7 +31,7 @@ from rvt2cli.errors import UserError
 from rvt2cli.model.config import get_config
 from rvt2cli.model.observation import aim_vector, aimed_target
 from rvt2cli.render.workspace import Workspace
-from rvt2cli.tasks import get_task
+from rvt2cli.tasks import TCP_AIM, get_task
 
 GOAL_OBJECT = {"insert_peg": "box", "plug_charger": "receptacle"}   # the scene attribute holding each task's goal
 
@@ -69,7 +69,7 @@ def measure(paths: list[Path], half: float, aim_held: bool = False) -> dict:
         env.reset(seed=ep.meta.seed)
         points = surface_points(getattr(env.unwrapped, GOAL_OBJECT[task]))
         keyframes = ep.require_keyframes().keyframes
-        offset = torch.tensor(get_task(task).aim_offset if aim_held else (0.0, 0.0, 0.0))
+        offset = torch.tensor(get_task(task).aim_offset if aim_held else TCP_AIM)
         for index, keyframe in enumerate(keyframes):
             observed_open = index == 0 or keyframes[index - 1].gripper_open   # the gripper where it is predicted
             aim = aim_vector(offset, torch.tensor([observed_open]), 1.0)[0].numpy()   # metres: the policy's rule

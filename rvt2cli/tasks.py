@@ -12,6 +12,8 @@ from importlib import resources
 
 from rvt2cli.errors import UserError
 
+TCP_AIM = (0.0, 0.0, 0.0)  # the aim offset of a task without one: the position heads aim the TCP itself
+
 # One workspace cube for every task (like RLBench's fixed bounds): 0.8 m on a side, table top at z = 0,
 # Panda base at x = -0.615 just outside it. Stage-1 pixels are 3.6 mm, stage-2 (4x zoom) 0.9 mm.
 DEFAULT_SCENE_BOUNDS = (-0.4, -0.4, -0.05, 0.4, 0.4, 0.75)
@@ -34,7 +36,7 @@ class Task:
     planner_speed: float = 0.9         # fraction of the Panda's joint velocity/acceleration limits (as the expert)
     gripper_close: float = -1.0        # the gripper command that closes it (as the expert; some grip softer)
     insertion: bool = False            # the point is fitting a held object into a close fit (failure reasons say how short)
-    aim_offset: tuple[float, ...] = (0.0, 0.0, 0.0)  # m, TCP frame: what the policy aims once it holds (rvt2 train --aim-held)
+    aim_offset: tuple[float, ...] = TCP_AIM  # m, TCP frame: what the policy aims once it holds (rvt2 train --aim-held)
     env_kwargs: dict = field(default_factory=dict)
 
     def instruction(self, seed: int) -> tuple[str, int]:

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from rvt2cli.render.workspace import Workspace
+from rvt2cli.tasks import TCP_AIM
 
 LANG_DIM = 384            # all-MiniLM-L6-v2 token embeddings
 PROPRIO_DIM = 4           # gripper open, left finger, right finger, time
@@ -61,9 +62,6 @@ def aim_vector(aim_offset_m: torch.Tensor, gripper_open: torch.Tensor, half_exte
     closed = (~gripper_open.reshape(-1, 1)).to(torch.float32)
     half = torch.as_tensor(half_extent, dtype=torch.float32).reshape(-1, 1)
     return aim_offset_m.to(torch.float32) * closed / half
-
-
-TCP_AIM = (0.0, 0.0, 0.0)  # the aim offset of a task without one: the position heads aim the TCP itself
 
 
 def aim_offset_or_tcp(aim_offset) -> list[float]:

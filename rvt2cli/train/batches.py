@@ -12,9 +12,10 @@ import numpy as np
 import torch
 
 from rvt2cli.model.config import ModelConfig
-from rvt2cli.model.observation import TCP_AIM, Observation, aim_vector, aimed_target, colours, fit_points
+from rvt2cli.model.observation import Observation, aim_vector, aimed_target, colours, fit_points
 from rvt2cli.model.rotation import euler_to_bins, quaternion_to_euler
 from rvt2cli.render.workspace import Workspace
+from rvt2cli.tasks import TCP_AIM
 from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation, yaw_matrices
 from rvt2cli.train.samples import SampleSet
 

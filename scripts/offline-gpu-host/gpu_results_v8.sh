@@ -44,11 +44,13 @@ case ${1:-} in
     if [ -n "$TEN" ]; then  # the 10-demo model trains on the GPU while the 25-demo one is evaluated (simulators on the CPUs)
       RUN=${RUN}_10 DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $TRAIN --episodes-per-task 10" bash $onebox train \
         > "$W/train_${RUN}_10.out" 2>&1 &
+      ten=$!
     fi
     RUN=$RUN OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline || echo "evaluating $RUN failed"
     if [ -n "$TEN" ]; then
-      wait || echo "training ${RUN}_10 failed: $W/train_${RUN}_10.out"
-      RUN=${RUN}_10 EVAL_EPISODES=${EVAL_EPISODES_10:-25} OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline
+      wait "$ten" || echo "training ${RUN}_10 failed: $W/train_${RUN}_10.out"
+      RUN=${RUN}_10 EVAL_EPISODES=${EVAL_EPISODES_10:-25} OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline \
+        || echo "evaluating ${RUN}_10 failed"
     fi ;;
   proxy-start)
     bash $onebox stash setup
