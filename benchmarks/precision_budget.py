@@ -11,6 +11,7 @@ executor) with its keyframes degraded the way a policy's predictions are, on the
 
     python -m benchmarks.precision_budget [--tasks insert_peg,plug_charger] [--variants exact,rot72,rot360,pos2]
                                           [--seeds 20] [--first-seed 10000] [--workers 2] [--json out.json]
+                                          [--no-insertion-search]
 
 Per task and variant: success (Wilson 95% interval) and, for insertion tasks, the median closest gap to
 success of the failed episodes. Every episode is `rvt2cli.eval.rollout.run_episode`, the loop `rvt2 eval`
@@ -88,14 +89,15 @@ def _episode(job: tuple[str, str, int]) -> dict:
     from rvt2cli.record.scene import make_env
     from rvt2cli.tasks import get_task
 
-    variant, task_name, seed = job
+    variant, task_name, seed, search = job
     task = get_task(task_name)
     env = _envs.setdefault(task_name, make_env(task))
     outcome = run_episode(env, task, seed, DegradedOracle(env, Degradation.parse(variant)), task.instruction(seed)[0],
-                          step_budget=2 * task.max_steps)
+                          step_budget=2 * task.max_steps, search=search)
     gaps = [s.gap_mm for s in outcome.steps if s.gap_mm is not None and s.held]
     return {"variant": variant, "task": task_name, "seed": seed, "success": outcome.success,
-            "failure": outcome.failure, "closest_gap_mm": min(gaps) if gaps else None}
+            "failure": outcome.failure, "closest_gap_mm": min(gaps) if gaps else None,
+            "probes": sum(s.reach.probes for s in outcome.steps)}
 
 
 def main() -> None:
@@ -105,12 +107,14 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--first-seed", type=int, default=10_000)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--no-insertion-search", dest="search", action="store_false",
+                        help="push insertions straight, without the executor's search for the hole")
     parser.add_argument("--json", help="write results here")
     args = parser.parse_args()
     tasks, variants = args.tasks.split(","), args.variants.split(",")
     for v in variants:
         Degradation.parse(v)
-    jobs = [(v, t, args.first_seed + i) for t in tasks for v in variants for i in range(args.seeds)]
+    jobs = [(v, t, args.first_seed + i, args.search) for t in tasks for v in variants for i in range(args.seeds)]
     with ProcessPoolExecutor(args.workers) as pool:
         episodes = list(pool.map(_episode, jobs))
     rows = []
@@ -128,7 +132,8 @@ def main() -> None:
                   f"{'-' if gap is None else f'{gap:.1f}'} |", flush=True)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": describe(), "first_seed": args.first_seed, "rows": rows, "episodes": episodes}, f, indent=2)
+            json.dump({"machine": describe(), "first_seed": args.first_seed, "insertion_search": args.search, "rows": rows,
+                       "episodes": episodes}, f, indent=2)
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ class Task:
     gripper_close: float = -1.0        # the gripper command that closes it (as the expert; some grip softer)
     insertion: bool = False            # the point is fitting a held object into a close fit (failure reasons say how short)
     aim_offset: tuple[float, ...] = TCP_AIM  # m, TCP frame: what the policy aims once it holds (rvt2 train --aim-held)
+    search_pitch_mm: float = 0.0       # > 0: an insertion stopped at a face searches for the hole on this grid (rvt2cli.eval.search)
     env_kwargs: dict = field(default_factory=dict)
 
     def instruction(self, seed: int) -> tuple[str, int]:
@@ -70,6 +71,8 @@ def _parse(text: str, source: str) -> Task:
         raise UserError(f"{source}: scene_bounds needs 6 numbers (xmin ymin zmin xmax ymax zmax)")
     if len(task.aim_offset) != 3:
         raise UserError(f"{source}: aim_offset needs 3 numbers (x y z in metres, in the TCP frame)")
+    if not isinstance(task.search_pitch_mm, (int, float)) or task.search_pitch_mm < 0:
+        raise UserError(f"{source}: search_pitch_mm must be a number >= 0 (mm; 0: no insertion search)")
     try:
         task.all_instructions()
     except KeyError as e:

@@ -31,6 +31,9 @@ def register(subparsers) -> None:
     p.add_argument("--step-budget-scale", type=number(0.0, 100.0, exclusive_minimum=True), default=E.step_budget_scale,
                    help=f"control steps per episode: this x the task's max_steps (default {E.step_budget_scale:g}; the "
                         "keyframe budget is the measure, this only ends episodes that keep the arm busy)")
+    p.add_argument("--no-insertion-search", dest="insertion_search", action="store_false",
+                   help="push insertions straight to the keyframe, as RLBench's executor does, instead of searching for "
+                        "the hole where the held object stops at a face (tasks with search_pitch_mm)")
     p.add_argument("--resume", action="store_true", help="continue the evaluation in --out (after a crash or Ctrl-C)")
     p.add_argument("--replay", metavar="JOURNAL",
                    help="instead of a checkpoint: the keyframes a policy predicted in a recorded evaluation (its "
@@ -56,7 +59,7 @@ def run(args) -> int:
                        workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
-                       device=args.device, resume=args.resume, replay=args.replay)
+                       device=args.device, resume=args.resume, replay=args.replay, insertion_search=args.insertion_search)
     bars = []
 
     def on_start(total):

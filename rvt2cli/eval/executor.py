@@ -19,6 +19,10 @@ whether the motion into it may touch the scene. The executor
 Every keyframe reports where the TCP came to rest (`Reach`). A pose the planners cannot reach is a
 failed step, not an error: nothing moves.
 
+An insertion (a keyframe that ignores collisions, with the gripper closed before and after it) is pushed
+along a straight line that stops at a contact; where the held object stops at a face short of the keyframe,
+the executor searches for the hole around it (`rvt2cli.eval.search`) before it servos.
+
 Collision avoidance guards the way, not the ends (`rvt2cli.eval.robot_geometry`): the planner's cloud
 leaves out every point within CLEARANCE of the robot's links as it stands (the wrist camera's housing
 included), and of the gripper's links where the gripper will stand at the goal, since grasping and
@@ -40,6 +44,8 @@ from scipy.spatial.transform import Rotation
 
 from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.eval.robot_geometry import RobotGeometry
+from rvt2cli.eval.search import (BLOCKED_M, CONTACT_LAG_M, CONTACT_SPEED_SHARE, ENTERED_M, INSIDE_M, PROBE_M,
+                                 RETRACT_M, InsertionSearch, across)
 from rvt2cli.record.scene import tcp_pose
 from rvt2cli.robot import RobotFacts, planner_description
 
@@ -84,6 +90,9 @@ class Reach:
     why: str | None = None              # unreached: one of UNREACHABLE
     nearest: bool = False               # the target was out of reach: went to the nearest pose within REACH_SLACK
     start_in_collision: bool = False    # the planner's cloud touched the robot where it stood (should never be)
+    probes: int = 0                     # probes of the insertion search (0: the push was not stopped at a face)
+    search_offset_mm: float | None = None  # where a probe went in: its distance across the push from the keyframe
+    interrupted: bool = False           # the episode's control steps ran out during this keyframe
 
     @staticmethod
     def unreachable(why: str, start_in_collision: bool = False) -> "Reach":
@@ -91,7 +100,11 @@ class Reach:
 
 
 class StepBudgetExhausted(Exception):
-    pass
+    """The episode's control steps ran out; `reach`: where the keyframe being executed got to."""
+
+    def __init__(self, reach: "Reach | None" = None):
+        super().__init__("the episode's control steps ran out")
+        self.reach = reach
 
 
 def rigid_transform(position, quaternion_xyzw) -> np.ndarray:
@@ -129,9 +142,10 @@ def pose_error(pose7: np.ndarray, target: Keyframe) -> tuple[float, float]:
 
 class Executor:
     def __init__(self, env, step_budget: int, speed: float = 0.9, gripper_close: float = -1.0,
-                 tolerance: Tolerance = Tolerance()):
+                 tolerance: Tolerance = Tolerance(), search: InsertionSearch | None = None):
         """`speed`: fraction of the robot's joint velocity and acceleration limits; `gripper_close`: the
-        command that closes the gripper. Both as the task's expert uses them."""
+        command that closes the gripper. Both as the task's expert uses them. `search`: how to look for the
+        hole when an insertion stops at a face (None: push straight only)."""
         import mplib
 
         self.env = env
@@ -152,6 +166,8 @@ class Executor:
         self.finger_mask = [i not in set(self.arm.tolist()) for i in range(len(self.joint_names))]
         self.time_step = env.unwrapped.control_timestep
         self.tolerance = tolerance
+        self.search = search
+        self.probes = 0  # probes of the insertion search at the keyframe being executed
         self.gripper = 1.0  # open, as every episode starts
         self.gripper_close = gripper_close
         self.steps = 0
@@ -210,6 +226,11 @@ class Executor:
     def _start_in_collision(self) -> bool:
         return len(self.planner.check_for_env_collision(qpos=self.qpos(), with_point_cloud=True)) > 0
 
+    def _screw(self, target: Keyframe, use_point_cloud: bool) -> dict | None:
+        """mplib's straight-line (screw) motion from where the arm stands to the target, or None."""
+        return _timed_path(lambda: self.planner.plan_screw(self._mplib_pose(target), self.qpos(), qpos_step=SCREW_STEP,
+                                                           time_step=self.time_step, use_point_cloud=use_point_cloud))
+
     def plan(self, target: Keyframe, scene_points: np.ndarray | None) -> tuple[str, dict] | None:
         """(planner name, mplib result) of a motion to the target, or None."""
         goal = self._mplib_pose(target)
@@ -220,8 +241,7 @@ class Executor:
             if avoid:
                 self.planner.update_point_cloud(kept, radius=COLLISION_RESOLUTION)
                 self.start_collided = self.start_collided or self._start_in_collision()
-        result = _timed_path(lambda: self.planner.plan_screw(goal, self.qpos(), qpos_step=SCREW_STEP,
-                                                             time_step=self.time_step, use_point_cloud=avoid))
+        result = self._screw(target, avoid)
         if result is not None:
             return "screw", result
         result = _timed_path(lambda: self.planner.plan_qpos_to_pose(goal, self.qpos(), time_step=self.time_step,
@@ -261,27 +281,102 @@ class Executor:
         return nearest
 
     # --- moving ----------------------------------------------------------------------------------------
-    def _follow(self, path: np.ndarray, goal: np.ndarray | None) -> np.ndarray:
-        """Step along the planned arm path [n, J], its end moved onto `goal` (blended in); returns the
-        final joint command."""
-        if len(path) == 0:  # already there (e.g. a gripper keyframe where the arm rests)
-            return goal if goal is not None else self.qpos()[self.arm]
-        if goal is not None and np.abs(goal - path[-1]).max() <= MAX_CORRECTION:
+    def _path_to(self, result: dict, target: Keyframe) -> tuple[np.ndarray, np.ndarray | None]:
+        """(the arm's part [n, J] of an mplib path to the target, with its end moved onto the exact IK
+        solution, blended in along the way; that solution, None if IK found none). A correction larger
+        than MAX_CORRECTION means another IK branch: the path is left as planned."""
+        path = np.asarray(result["position"])[:, : len(self.arm)] if len(result["position"]) else np.zeros((0, len(self.arm)))
+        near = self.qpos().astype(np.float64)
+        if len(path):
+            near[self.arm] = path[-1]
+        goal = self.inverse_kinematics(target, near)
+        if len(path) and goal is not None and np.abs(goal - path[-1]).max() <= MAX_CORRECTION:
             ramp = (np.arange(1, len(path) + 1) / len(path))[:, None]
             path = path + ramp * (goal - path[-1])
-        for q in path:
+        return path, goal
+
+    def _tcp_along(self, path: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """[n]: where each arm command of the path puts the TCP, along `direction` (forward kinematics)."""
+        q = self.qpos().astype(np.float64)
+        along = []
+        for row in path:
+            q[self.arm] = row
+            self.planner.pinocchio_model.compute_forward_kinematics(q)
+            along.append(self._world_pose(self.tcp_index)[:3, 3] @ direction)
+        return np.asarray(along)
+
+    def _follow(self, path: np.ndarray, watch: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+        """Step along the arm path [n, J]; returns (the last joint command, whether a contact stopped it).
+        With `watch` (a unit vector), stop where the TCP no longer follows its commands along it
+        (`rvt2cli.eval.search`) and hold the arm where it stands."""
+        if len(path) == 0:  # already there (e.g. a gripper keyframe where the arm rests)
+            return self.qpos()[self.arm], False
+        commanded = self._tcp_along(path, watch) if watch is not None else None
+        here = asked_before = float(self.tcp_pose()[:3] @ watch) if watch is not None else 0.0
+        for i, q in enumerate(path):
             self._step(q)
-        return path[-1]
+            if watch is None:
+                continue
+            before, here = here, float(self.tcp_pose()[:3] @ watch)
+            asked, asked_before = commanded[i] - asked_before, commanded[i]
+            if commanded[i] - here > CONTACT_LAG_M and asked > 0 and here - before < CONTACT_SPEED_SHARE * asked:
+                hold = self.qpos()[self.arm]
+                self._step(hold)
+                return hold, True
+        return path[-1], False
+
+    def _settle(self, command: np.ndarray) -> None:
+        """Hold `command` until the arm rests (at most SETTLE_STEPS)."""
+        for _ in range(SETTLE_STEPS):
+            if self._at_rest():
+                break
+            self._step(command)
+
+    def _push(self, target: Keyframe, direction: np.ndarray) -> tuple[np.ndarray, bool] | None:
+        """A straight line to the target, through the scene, stopped by a contact along `direction`:
+        (the last joint command, whether a contact stopped it), or None when no straight line goes there."""
+        result = self._screw(target, use_point_cloud=False)
+        return None if result is None else self._follow(self._path_to(result, target)[0], direction)
+
+    def _search_hole(self, target: Keyframe, direction: np.ndarray, command: np.ndarray):
+        """The held object rests at a face short of the target: probe across the push for the hole
+        (`rvt2cli.eval.search`). Returns (the keyframe to servo onto: the target shifted to where a probe
+        went in, or None when none did; the last joint command; the shift in mm). Counts its probes in
+        `self.probes`."""
+        line = np.asarray(target.position, dtype=np.float64)
+        face = float(self.tcp_pose()[:3] @ direction)
+        depth = float(line @ direction) - face  # from the face to the target, along the push
+        plane = across(direction)
+        for self.probes, (a, b) in enumerate(self.search.offsets(), start=1):
+            shifted = line + a * plane[0] + b * plane[1]
+            back = _moved(target, shifted - (depth + RETRACT_M) * direction)
+            retreat = self._screw(back, use_point_cloud=False)
+            if retreat is None:
+                continue
+            command, _ = self._follow(self._path_to(retreat, back)[0])
+            probed = self._push(_moved(target, shifted - (depth - PROBE_M) * direction), direction)
+            if probed is None:
+                continue
+            command = probed[0]
+            self._settle(command)
+            if float(self.tcp_pose()[:3] @ direction) - face <= ENTERED_M:
+                continue
+            inside = _moved(target, shifted)
+            pushed = self._push(inside, direction)
+            command = pushed[0] if pushed else command
+            self._settle(command)
+            here = self.tcp_pose()[:3] @ direction
+            if here - face > INSIDE_M or float(shifted @ direction) - here <= BLOCKED_M:
+                return inside, command, 1000.0 * float(np.hypot(a, b))
+            # stopped again near the face: the object turned or slid in the fingers, it is not in the hole
+        return None, command, None
 
     def _servo(self, target: Keyframe, command: np.ndarray) -> tuple[np.ndarray, int]:
         """Hold `command` until the arm rests; then, while the TCP rests off the target, shift the command
         by the remaining joint error, until the TCP is within tolerance (or, avoiding collisions, stops
         coming closer).
         Returns (the final command, servo steps spent)."""
-        for _ in range(SETTLE_STEPS):
-            if self._at_rest():
-                break
-            self._step(command)
+        self._settle(command)
         goal = command.copy()
         servo_steps, best, since_best = 0, np.inf, 0
         patience = SERVO_STEPS if target.ignore_collisions else STALL_STEPS
@@ -331,14 +426,42 @@ class Executor:
             if planned is None:
                 return Reach.unreachable("no_path", self.start_collided)
         planner, result, fallback = planned
-        path = np.asarray(result["position"])[:, : len(self.arm)] if len(result["position"]) else np.zeros((0, len(self.arm)))
-        near = self.qpos().astype(np.float64)
-        if len(path):
-            near[self.arm] = path[-1]
-        goal = self.inverse_kinematics(target, near)
-        command = self._follow(path, goal)
-        command, servo_steps = self._servo(target, command)
-        position, rotation = pose_error(self.tcp_pose(), asked)
-        self._set_gripper(target.gripper_open, command)
+        self.probes, offset, servo_steps = 0, None, 0
+        try:
+            path, goal = self._path_to(result, target)
+            push = self._insertion_direction(target) if planner == "screw" else None
+            command, contact = self._follow(path, push)
+            if not len(path) and goal is not None:
+                command = goal
+            if push is not None:
+                self._settle(command)
+                if (np.asarray(target.position) - self.tcp_pose()[:3]) @ push > BLOCKED_M:  # at a face, short of it
+                    target, command, offset = self._search_hole(target, push, command)
+                elif contact:  # stopped near the keyframe: push on to it, as any insertion
+                    command = path[-1]
+            if target is not None:  # (None: the search found no hole; the object stays at the face)
+                command, servo_steps = self._servo(target, command)
+            position, rotation = pose_error(self.tcp_pose(), asked)  # where the arm rests, before the gripper acts
+            self._set_gripper(asked.gripper_open, command)
+        except StepBudgetExhausted:
+            position, rotation = pose_error(self.tcp_pose(), asked)
+            raise StepBudgetExhausted(Reach(True, position * 1000.0, rotation, planner, fallback, nearest=nearest,
+                                            start_in_collision=self.start_collided, probes=self.probes,
+                                            interrupted=True)) from None
         return Reach(True, position * 1000.0, rotation, planner, fallback, servo_steps, nearest=nearest,
-                     start_in_collision=self.start_collided)
+                     start_in_collision=self.start_collided, probes=self.probes, search_offset_mm=offset)
+
+    def _insertion_direction(self, target: Keyframe) -> np.ndarray | None:
+        """The unit direction of the push into `target` if it is an insertion to search for (a keyframe
+        that ignores collisions, the gripper holding before and after it, with a search configured), else
+        None."""
+        if self.search is None or not target.ignore_collisions or target.gripper_open or self.gripper == 1.0:
+            return None
+        line = np.asarray(target.position) - self.tcp_pose()[:3]
+        length = float(np.linalg.norm(line))
+        return line / length if length > BLOCKED_M else None
+
+
+def _moved(keyframe: Keyframe, position: np.ndarray) -> Keyframe:
+    """The keyframe at another position (same rotation, gripper and collision flag)."""
+    return Keyframe.from_pose([*position, *keyframe.quaternion], keyframe.gripper_open, keyframe.ignore_collisions)

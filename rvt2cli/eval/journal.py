@@ -29,6 +29,7 @@ def read_journal(path: Path) -> tuple[dict, list[dict]]:
         plan = json.loads(lines[0])["plan"]
     except (IndexError, json.JSONDecodeError, KeyError, TypeError):
         raise UserError(f"{path}: not an rvt2 evaluation journal; choose another --out") from None
+    plan.setdefault("insertion_search", False)  # written before the executor could search: it pushed straight
     try:
         return plan, [json.loads(line) for line in lines[1:]]
     except json.JSONDecodeError:

@@ -30,10 +30,12 @@ class EvalOptions:
     device: str = "cpu"
     resume: bool = False              # continue the evaluation in `out` (its journal) instead of refusing it
     replay: str | None = None         # a recorded evaluation's journal: its policy keyframes instead of a checkpoint's
+    insertion_search: bool = True     # search for the hole where an insertion stops at a face (rvt2cli.eval.search)
 
     def plan(self, checkpoint_path: str | None) -> dict:
         """The options that decide which episodes run and how: a resumed evaluation must keep them."""
         return {"checkpoint": checkpoint_path, "tasks": list(self.tasks), "episodes": self.episodes, "seed": self.seed,
                 "oracle": self.oracle, "demos": list(self.demos), "instruction": self.instruction,
                 "keyframe_budget": self.keyframe_budget, "max_replans": self.max_replans,
-                "step_budget_scale": self.step_budget_scale, "replay": self.replay}
+                "step_budget_scale": self.step_budget_scale, "replay": self.replay,
+                "insertion_search": self.insertion_search}

@@ -43,7 +43,8 @@ def episode_record(source: str, outcome: Outcome) -> dict:
                        "servo_steps": s.reach.servo_steps, "target": list(s.keyframe.pose),
                        "gripper_open": s.keyframe.gripper_open, "ignore_collisions": s.keyframe.ignore_collisions,
                        "why": s.reach.why, "nearest": s.reach.nearest, "start_in_collision": s.reach.start_in_collision,
-                       "held": s.held, "gap_mm": s.gap_mm}
+                       "held": s.held, "gap_mm": s.gap_mm, "probes": s.reach.probes,
+                       "search_offset_mm": s.reach.search_offset_mm, "interrupted": s.reach.interrupted}
                       for s in outcome.steps]}
 
 
@@ -55,11 +56,19 @@ def _percentiles(values: list[float]) -> dict:
 
 
 def pose_errors(steps: list[dict]) -> dict:
-    """Median, p95 and max of the errors at rest of these executed keyframes (the reached ones)."""
-    reached = [s for s in steps if s["reached"]]
+    """Median, p95 and max of the errors at rest of these executed keyframes (the reached ones, but for
+    one the episode's control steps ran out in: that arm is not at rest)."""
+    reached = [s for s in steps if s["reached"] and not s.get("interrupted")]
     return {"keyframes": len(reached),
             "position_mm": _percentiles([s["position_error_mm"] for s in reached]),
             "rotation_deg": _percentiles([s["rotation_error_deg"] for s in reached])}
+
+
+def search_summary(steps: list[dict]) -> dict:
+    """The insertion search over these keyframes: how many searched for a hole, found one, and probed."""
+    searched = [s for s in steps if s.get("probes")]
+    return {"searched": len(searched), "found": sum(s.get("search_offset_mm") is not None for s in searched),
+            "probes": sum(s["probes"] for s in searched)}
 
 
 def summarize(records: list[dict], insertion: bool = False) -> dict:
@@ -82,6 +91,7 @@ def summarize(records: list[dict], insertion: bool = False) -> dict:
         "unreached_keyframes": sum(r["unreached_keyframes"] for r in records),
         "replans": sum(r.get("replans", 0) for r in records),
         "collision_fallbacks": sum(r["collision_fallbacks"] for r in records),
+        "insertion_search": search_summary(steps),
         "pose_error": pose_errors(steps),
         # keyframes that avoid collisions end in free space, where the executor must land; those that
         # ignore them push into the scene (insertions, pushes) and rest where a contact stops them
@@ -153,6 +163,14 @@ def markdown(report: dict) -> str:
                                                    for s, r in per.items() if "successes_within_task_steps" in r)
                            for task, per in report["tasks"].items())
         lines += ["", f"Successes within each task's own max_steps (a budget of 1 x): {within}."]
+    searches = [f"{task} {s}: {r['insertion_search']['found']} of {r['insertion_search']['searched']} "
+                f"({r['insertion_search']['probes']} probes)"
+                for task, per in report["tasks"].items() for s, r in per.items() if r.get("insertion_search", {}).get("searched")]
+    if report.get("insertion_search") is False:
+        lines += ["", "Insertion search off (--no-insertion-search): insertions were pushed straight to their keyframes."]
+    elif searches:
+        lines += ["", "Insertion search (rvt2cli.eval.search): insertions that stopped at a face and then found the hole, "
+                  "of those searched: " + "; ".join(searches) + "."]
     lines += ["", "Why episodes failed (rvt2cli.eval.taxonomy), per task and source; for insertion tasks the "
               "median gap to success, mm, of the failed episodes' closest approach with the object in hand:", "",
               "| task | source | " + " | ".join(REASONS) + " | gap mm | unreached per episode |",

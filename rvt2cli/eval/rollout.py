@@ -20,6 +20,7 @@ from rvt2cli.data.fusion import fuse
 from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.eval.executor import Executor, Reach, StepBudgetExhausted
 from rvt2cli.eval.options import MAX_REPLANS
+from rvt2cli.eval.search import InsertionSearch
 from rvt2cli.record.scene import capture_cameras, held_objects, segmentation_ids
 from rvt2cli.runtime import seed_everything
 from rvt2cli.tasks import Task
@@ -103,12 +104,15 @@ def _collision_points(env, frames, segmentation, bounds) -> np.ndarray:
 
 
 def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction: str, keyframe_budget: int = 25,
-                step_budget: int | None = None, video_every: int = 0, max_replans: int = MAX_REPLANS) -> Outcome:
+                step_budget: int | None = None, video_every: int = 0, max_replans: int = MAX_REPLANS,
+                search: bool = True) -> Outcome:
+    """`search`: search for the hole where an insertion stops at a face (on tasks that give a pitch)."""
     seed_everything(seed)
     source.reset(task, seed, instruction)  # first: the oracle may run the expert on this seed
     seed_everything(seed)
     env.reset(seed=seed)
-    executor = Executor(env, step_budget or task.max_steps, task.planner_speed, task.gripper_close)
+    executor = Executor(env, step_budget or task.max_steps, task.planner_speed, task.gripper_close,
+                        search=InsertionSearch.for_task(task) if search else None)
     outcome = Outcome(task=task.name, seed=seed, success=False, failure=None, instruction=instruction,
                       step_budget=executor.step_budget, task_steps=task.max_steps,
                       control_hz=float(env.unwrapped.control_freq))
@@ -128,11 +132,16 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
             if keyframe is None:
                 break
             scene_points = None if keyframe.ignore_collisions else _collision_points(env, frames, segmentation, task.scene_bounds)
-            frame = executor.steps
-            reach = executor.execute(keyframe, scene_points)
+            frame, spent = executor.steps, None
+            try:
+                reach = executor.execute(keyframe, scene_points)
+            except StepBudgetExhausted as error:  # the keyframe the budget ran out in is kept, marked interrupted
+                reach, spent = error.reach, error
             info = env.unwrapped.evaluate()
             outcome.steps.append(Step(frame=frame, keyframe=keyframe, reach=reach, retry=retry, held=bool(held_objects(env)),
                                       gap_mm=insertion_gap_mm(env, info) if task.insertion else None))
+            if spent:
+                raise spent
             if bool(info["success"].item()):
                 outcome.success = True
                 break

@@ -80,7 +80,8 @@ class _Worker:
         try:
             return run_episode(env, task, job.seed, source, instruction, self.opts.keyframe_budget,
                                step_budget=round(task.max_steps * self.opts.step_budget_scale),
-                               video_every=2 if self.opts.video else 0, max_replans=self.opts.max_replans)
+                               video_every=2 if self.opts.video else 0, max_replans=self.opts.max_replans,
+                               search=self.opts.insertion_search)
         except UserError:
             raise
         except Exception as e:  # noqa: BLE001 - a simulator crash costs this episode, not the run
@@ -196,7 +197,7 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     def report() -> dict:
         meta = {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
                 "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
-                "step_budget_scale": opts.step_budget_scale,
+                "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
                 "untrained_tasks": untrained, "seconds": time.perf_counter() - start}
         result = build_report(journal.records, meta)
         write_report(result, out_dir)

@@ -28,6 +28,10 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
     from mani_skill.utils.logging_utils import logger as mani_skill_logger
 
     mani_skill_logger.setLevel(logging.ERROR)  # e.g. "no CUDA, rendering on the CPU": expected here
+    # mplib's path timing (TOPP-RA) warns ("Fail to parametrize path", "A numerical error occurs") about every
+    # path it cannot time, once per handler it has added (one per plan): the experts and the executor treat
+    # such a path as none
+    logging.getLogger("toppra.algorithm").setLevel(logging.ERROR)
     from mani_skill.utils.registration import REGISTERED_ENVS
 
     base = REGISTERED_ENVS[task.env_id].cls
