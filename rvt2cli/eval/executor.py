@@ -37,7 +37,7 @@ that is within REACH_SLACK: a real arm under Cartesian control goes as far as it
 is reported against the pose asked for. Further off, the keyframe is unreachable (`Reach.why`).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -185,6 +185,10 @@ class Executor:
     def tcp_pose(self) -> np.ndarray:
         return tcp_pose(self.env).astype(np.float64)
 
+    def _along(self, direction: np.ndarray) -> float:
+        """Where the TCP is along a unit direction (m)."""
+        return float(self.tcp_pose()[:3] @ direction)
+
     def _at_rest(self) -> bool:
         return float(np.abs(self.robot.get_qvel()[0].cpu().numpy()[self.arm]).max()) < REST_SPEED
 
@@ -312,12 +316,12 @@ class Executor:
         if len(path) == 0:  # already there (e.g. a gripper keyframe where the arm rests)
             return self.qpos()[self.arm], False
         commanded = self._tcp_along(path, watch) if watch is not None else None
-        here = asked_before = float(self.tcp_pose()[:3] @ watch) if watch is not None else 0.0
+        here = asked_before = self._along(watch) if watch is not None else 0.0
         for i, q in enumerate(path):
             self._step(q)
             if watch is None:
                 continue
-            before, here = here, float(self.tcp_pose()[:3] @ watch)
+            before, here = here, self._along(watch)
             asked, asked_before = commanded[i] - asked_before, commanded[i]
             if commanded[i] - here > CONTACT_LAG_M and asked > 0 and here - before < CONTACT_SPEED_SHARE * asked:
                 hold = self.qpos()[self.arm]
@@ -344,7 +348,7 @@ class Executor:
         went in, or None when none did; the last joint command; the shift in mm). Counts its probes in
         `self.probes`."""
         line = np.asarray(target.position, dtype=np.float64)
-        face = float(self.tcp_pose()[:3] @ direction)
+        face = self._along(direction)
         depth = float(line @ direction) - face  # from the face to the target, along the push
         plane = across(direction)
         for self.probes, (a, b) in enumerate(self.search.offsets(), start=1):
@@ -359,13 +363,13 @@ class Executor:
                 continue
             command = probed[0]
             self._settle(command)
-            if float(self.tcp_pose()[:3] @ direction) - face <= ENTERED_M:
+            if self._along(direction) - face <= ENTERED_M:
                 continue
             inside = _moved(target, shifted)
             pushed = self._push(inside, direction)
             command = pushed[0] if pushed else command
             self._settle(command)
-            here = self.tcp_pose()[:3] @ direction
+            here = self._along(direction)
             if here - face > INSIDE_M or float(shifted @ direction) - here <= BLOCKED_M:
                 return inside, command, 1000.0 * float(np.hypot(a, b))
             # stopped again near the face: the object turned or slid in the fingers, it is not in the hole
@@ -435,7 +439,7 @@ class Executor:
                 command = goal
             if push is not None:
                 self._settle(command)
-                if (np.asarray(target.position) - self.tcp_pose()[:3]) @ push > BLOCKED_M:  # at a face, short of it
+                if float(np.asarray(target.position) @ push) - self._along(push) > BLOCKED_M:  # at a face, short of it
                     target, command, offset = self._search_hole(target, push, command)
                 elif contact:  # stopped near the keyframe: push on to it, as any insertion
                     command = path[-1]
@@ -463,5 +467,5 @@ class Executor:
 
 
 def _moved(keyframe: Keyframe, position: np.ndarray) -> Keyframe:
-    """The keyframe at another position (same rotation, gripper and collision flag)."""
-    return Keyframe.from_pose([*position, *keyframe.quaternion], keyframe.gripper_open, keyframe.ignore_collisions)
+    """The keyframe at another position."""
+    return replace(keyframe, position=tuple(float(v) for v in position))
