@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.inhand_bench import in_hand
 from benchmarks.machine import describe
 from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import NAME, read_journal
@@ -39,10 +40,7 @@ _envs: dict = {}
 
 def peg_in_hand_mm(env) -> float:
     """How far the peg's centre sits ahead of the TCP along the gripper's x axis (the peg's axis), mm."""
-    scene = env.unwrapped
-    tcp = scene.agent.tcp.pose.to_transformation_matrix()[0].numpy()
-    peg = scene.peg.pose.to_transformation_matrix()[0].numpy()
-    return 1000.0 * float((np.linalg.inv(tcp) @ peg)[0, 3])
+    return 1000.0 * float(in_hand(env, "peg")[0][0])
 
 
 def first_insertion_stop(record: dict) -> dict:
