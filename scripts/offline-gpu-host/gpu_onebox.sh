@@ -19,7 +19,8 @@
 # Online:  tar -xf meta.tar in the pieces' folder; python $K/gpu_checkpoint.py restore PIECES_DIR runs/NAME
 # Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
 # "--compile --seed 1", "--episodes-per-task 10 --cameras front"), DATA (the demos RUN trains on),
-# OFFLINE_DEMOS (the held-out demos RUN is scored on), EVAL_EPISODES, WORKERS, RUNS (results).
+# OFFLINE_DEMOS (the held-out demos RUN is scored on), EVAL_EPISODES, EVAL_ARGS and EVAL_NAME (eval's options
+# and report name), WORKERS, RUNS (results).
 # gpu_results_v2.sh, gpu_results_v2_1gpu.sh and gpu_results_v3.sh hold the exact commands behind docs/RESULTS.md.
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root: every path below is relative to it
@@ -184,13 +185,15 @@ while [ $# -gt 0 ]; do
     read -r rc _ < "$W/$name.done"
     [ "$rc" = 0 ] || { echo "$name failed ($rc)"; exit 4; }
     ;;
-  eval)
+  eval)  # RUN closed loop; EVAL_NAME names the report (eval_$EVAL_NAME, default RUN), EVAL_ARGS adds options
     t=$(clock)
+    name=${EVAL_NAME:-$RUN}
     resume=()
-    if [ -f "$W/eval_$RUN/episodes.jsonl" ]; then resume=(--resume); fi  # an interrupted evaluation: the rest of it
+    if [ -f "$W/eval_$name/episodes.jsonl" ]; then resume=(--resume); fi  # an interrupted evaluation: the rest of it
+    # shellcheck disable=SC2086  # EVAL_ARGS is a list of options
     "${RVT2[@]}" eval --checkpoint "$W/runs/$RUN" --episodes "$EVAL_EPISODES" --seed 10000 --workers "$WORKERS" \
-      --device "$DEVICE" --out "$W/eval_$RUN" --no-progress "${resume[@]}" 2>&1 | tail -12
-    phase "eval_$RUN" $(( $(clock) - t ))
+      --device "$DEVICE" --out "$W/eval_$name" --no-progress "${resume[@]}" ${EVAL_ARGS:-} 2>&1 | tail -12
+    phase "eval_$name" $(( $(clock) - t ))
     ;;
   offline)  # millimetres on the held-out demos in $W/heldout (carried from $HELDOUT by stash, or the heldout phase)
     t=$(clock)
