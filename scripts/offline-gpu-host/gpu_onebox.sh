@@ -43,6 +43,8 @@ WAIT_S=${WAIT_S:-560}   # how long `wait` waits inside one command
 OUT=${OUT:-/tmp/rvt2-out}
 mkdir -p "$W" "$OUT"
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 RVT2_EMBEDDINGS=$SITE/embeddings.safetensors
+# toppra's docstrings hold invalid escapes that Python 3.12 reports while compiling them, in every process
+export PYTHONWARNINGS=${PYTHONWARNINGS:-ignore::SyntaxWarning}
 export LD_LIBRARY_PATH=${LD_LIBRARY_PATH:-}:/usr/local/nvidia/lib64:/usr/local/nvidia/lib
 export PYTORCH_CUDA_ALLOC_CONF=${PYTORCH_CUDA_ALLOC_CONF:-expandable_segments:True}  # two trainings share one GPU
 export RVT2_VULKAN=${RVT2_VULKAN:-nvidia}   # the point of this machine: say so at once if its GPU cannot render
