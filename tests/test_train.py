@@ -273,33 +273,66 @@ def test_rotation_bins_set_the_policys_rotation_resolution(tiny_dataset, tmp_pat
 def test_start_share_draws_keyframe_starts_and_is_kept_with_the_run(tiny_dataset, tmp_path, cli):
     """--start-share 0.5: half of each task's draws come from its keyframe-start samples (the only
     observations a closed loop makes), the other half from all samples as before; 0 draws exactly what
-    the plain task-uniform sampler draws; the run keeps the share, and a resume may not change it."""
+    the plain sampler draws; the run keeps the share, and a resume may not change it."""
     import numpy as np
 
     from rvt2cli.model.config import get_config
-    from rvt2cli.train.batches import TaskUniformSampler
+    from rvt2cli.train.batches import TaskSampler
     from rvt2cli.train.trainer import load_data
 
     opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "x"), **TINY_TRAIN)
     packed = load_data(opts, get_config("small"), torch.device("cpu"), False, None, lambda *_: None).packed
     start = packed.keyframe_start
     assert 0 < start.sum() < len(start)
-    draws = TaskUniformSampler(packed.task, start, 0.5).sample(20_000, torch.Generator().manual_seed(0))
+    draws = TaskSampler(packed.task, start, 0.5).sample(20_000, torch.Generator().manual_seed(0))
     expected = 0.5 + 0.5 * start.mean()   # the uniform half also lands on a start now and then
     assert abs(start[draws].mean() - expected) < 0.02
     assert set(draws[start[draws]]) == set(np.flatnonzero(start))   # every start sample is drawn
-    plain = TaskUniformSampler(packed.task).sample(500, torch.Generator().manual_seed(3))
-    assert (TaskUniformSampler(packed.task, start, 0.0).sample(500, torch.Generator().manual_seed(3)) == plain).all()
-    assert start[TaskUniformSampler(packed.task, start, 1.0).sample(500, torch.Generator().manual_seed(3))].all()
+    plain = TaskSampler(packed.task).sample(500, torch.Generator().manual_seed(3))
+    assert (TaskSampler(packed.task, start, 0.0).sample(500, torch.Generator().manual_seed(3)) == plain).all()
+    assert start[TaskSampler(packed.task, start, 1.0).sample(500, torch.Generator().manual_seed(3))].all()
 
     run_dir = tmp_path / "share"
-    train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), steps=2, save_every=2, start_share=0.5, **TINY_TRAIN),
-          say=lambda *_: None)
-    assert json.loads((run_dir / "run.json").read_text())["options"]["start_share"] == 0.5
+    said = []
+    train(TrainOptions(data=[str(tiny_dataset)], out=str(run_dir), steps=2, save_every=2, start_share=0.5,
+                       task_weights={"stack_cube": 2.0}, **TINY_TRAIN), say=said.append)
+    assert "task shares of the draws (--task-weights): stack_cube 100%" in said
+    stored = json.loads((run_dir / "run.json").read_text())["options"]
+    assert stored["start_share"] == 0.5 and stored["task_weights"] == {"stack_cube": 2.0}
     r = cli("train", "--out", run_dir, "--resume", "--start-share", "0.2")
     assert_one_line_error(r, "--start-share 0.2 differs from the run's 0.5")
+    r = cli("train", "--out", run_dir, "--resume", "--task-weights", "stack_cube=3")
+    assert_one_line_error(r, "--task-weights {'stack_cube': 3.0} differs from the run's {'stack_cube': 2.0}")
     r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "bad", "--start-share", "1.5")
     assert r.returncode != 0 and "1.5" in r.stderr
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "bad", "--task-weights", "insert_peg=3,stack_cube=1",
+            "--no-progress")
+    assert_one_line_error(r, "--task-weights: no insert_peg in --data (its tasks: stack_cube)")
+    assert not (tmp_path / "bad").exists()
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "bad", "--task-weights", "insert_peg=0")
+    assert r.returncode == 2 and "'insert_peg=0' is not NAME=WEIGHT with a positive weight" in r.stderr
+
+
+def test_task_weights_set_each_task_share_of_the_draws():
+    """--task-weights: a task's share of the draws is its weight over the sum (here 3:1:1), over the
+    tasks the training split holds (a task with no samples draws nothing); without weights the sampler
+    draws the uniform random numbers it always did."""
+    import numpy as np
+
+    from rvt2cli.train.batches import TaskSampler
+
+    task = np.repeat([0, 1, 2], [50, 10, 40])
+    draws = TaskSampler(task, task_weights=np.array([3.0, 1.0, 1.0])).sample(20_000, torch.Generator().manual_seed(0))
+    assert np.allclose(np.bincount(task[draws], minlength=3) / 20_000, [0.6, 0.2, 0.2], atol=0.015)
+    assert np.allclose(TaskSampler(task, task_weights=np.array([3.0, 1.0, 1.0])).shares(), [0.6, 0.2, 0.2])
+    without_1 = np.repeat([0, 2], [30, 30])
+    sampler = TaskSampler(without_1, task_weights=np.array([3.0, 1.0, 1.0]))
+    assert np.allclose(sampler.shares(), [0.75, 0.25])
+    assert np.allclose(np.mean(without_1[sampler.sample(20_000, torch.Generator().manual_seed(1))] == 0), 0.75, atol=0.015)
+    generator = torch.Generator().manual_seed(4)
+    expected_tasks = torch.randint(3, (200,), generator=generator).numpy()
+    uniform = TaskSampler(task).sample(200, torch.Generator().manual_seed(4))
+    assert (task[uniform] == expected_tasks).all()
 
 
 def test_zoom_and_coarse_action_features_are_kept_with_the_run(tiny_dataset, tmp_path, cli):

@@ -73,6 +73,23 @@ def names(text: str) -> tuple[str, ...]:
     return tuple(t.strip() for t in text.split(",") if t.strip())
 
 
+def weights(text: str) -> dict[str, float]:
+    """Comma-separated NAME=W pairs with finite positive weights, e.g. insert_peg=3,plug_charger=3."""
+    out = {}
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        name, sep, value = item.partition("=")
+        try:
+            weight = float(value)
+        except ValueError:
+            weight = math.nan
+        if not sep or not name.strip() or not math.isfinite(weight) or weight <= 0:
+            raise argparse.ArgumentTypeError(f"{item!r} is not NAME=WEIGHT with a positive weight (e.g. insert_peg=3)")
+        out[name.strip()] = weight
+    if not out:
+        raise argparse.ArgumentTypeError(f"{text!r} names no task (e.g. insert_peg=3,plug_charger=3)")
+    return out
+
+
 POSITIVE = number(0.0, exclusive_minimum=True)  # lengths, times, thresholds, learning rates
 COUNT = integer(minimum=1)          # episodes, steps, workers, batch size, ...
 NON_NEGATIVE = integer(minimum=0)   # seeds, frames, held-out episodes, ...

@@ -2,7 +2,7 @@
 
 import argparse
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names, number
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names, number, weights
 
 
 def register(subparsers) -> None:
@@ -60,6 +60,9 @@ def register(subparsers) -> None:
                    help="draw this share of each task's samples from those observed at frame 0 or at a keyframe, "
                         "the only observations a closed loop makes (default 0: every sample alike, as the paper); "
                         "e.g. 0.5")
+    p.add_argument("--task-weights", type=weights, metavar="TASK=W,...",
+                   help="draw tasks in proportion to these weights (tasks left out: 1) instead of uniformly, e.g. "
+                        "insert_peg=3,plug_charger=3 to give the insertions more of the training (default: every task alike, as the paper)")
     p.add_argument("--cameras", type=names, help="fuse only these cameras' points, e.g. front (the single-camera setting)")
     p.add_argument("--no-amp", dest="amp", action="store_false", help="no bf16 autocast on CUDA")
     p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU: ~1.5x faster after a minute of compiling)")

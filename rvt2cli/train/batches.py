@@ -1,4 +1,4 @@
-"""Samples packed into tensors (on the training device), task-uniform sampling, and batches.
+"""Samples packed into tensors (on the training device), sampling task by task, and batches.
 
 Clouds are padded (or randomly subsampled) to `max_points` so every batch has the same shape; the
 renderer ignores the padding through `num_points`. A batch's small host-side arrays (indices,
@@ -82,27 +82,50 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
     )
 
 
-class TaskUniformSampler:
-    """Draw a task uniformly, then one of its samples uniformly; with `start_share` > 0, that share of
-    the draws takes one of the task's keyframe-start samples instead.
+class TaskSampler:
+    """Draw a task, then one of its samples uniformly; with `start_share` > 0, that share of the draws
+    takes one of the task's keyframe-start samples instead.
 
-    Why: a closed loop only ever observes the scene at keyframe starts (frame 0, then where each keyframe
-    was reached), but the samples between keyframes (every `--obs-every` frames, the paper's demo
-    augmentation) outnumber them 3-5 to 1, and are the easy ones: mid-motion, the gripper already points
-    where it goes. A long transit (insert_peg's grasp to pre-insert) leaves its one start sample, the
-    only one a rollout asks about, a twentieth of the task's draws. Measured (docs/RESULTS.md v6): a
-    share of 0.5 left that start's error where it was (61 mm); the sampling is not what limits it."""
+    Tasks are drawn uniformly, as the paper does, or in proportion to `task_weights` (one per task
+    index; `rvt2 train --task-weights`): with one model and a fixed number of steps, a task's precision
+    follows the samples it is trained on (insert_peg's insertion: 9.0 mm and 3.3 degrees off in results
+    v8's 8-task model, 5.1 mm and 1.0 degree trained alone for the same 1,200 steps in v9), and the tasks already
+    solved need fewer.
 
-    def __init__(self, task: np.ndarray, start: np.ndarray | None = None, start_share: float = 0.0):
+    Why the starts: a closed loop only ever observes the scene at keyframe starts (frame 0, then where
+    each keyframe was reached), but the samples between keyframes (every `--obs-every` frames, the
+    paper's demo augmentation) outnumber them 3-5 to 1, and are the easy ones: mid-motion, the gripper
+    already points where it goes. A long transit (insert_peg's grasp to pre-insert) leaves its one start
+    sample, the only one a rollout asks about, a twentieth of the task's draws. Measured
+    (docs/RESULTS.md v6): a share of 0.5 left that start's error where it was (61 mm); the sampling is
+    not what limits it."""
+
+    def __init__(self, task: np.ndarray, start: np.ndarray | None = None, start_share: float = 0.0,
+                 task_weights: np.ndarray | None = None):
         if not 0.0 <= start_share <= 1.0:
             raise ValueError("start_share must be within [0, 1]")
-        self.by_task = [np.flatnonzero(task == t) for t in np.unique(task)]
+        present = np.unique(task)
+        self.by_task = [np.flatnonzero(task == t) for t in present]
         start = np.zeros(len(task), bool) if start is None else np.asarray(start, bool)
         self.starts_by_task = [indices[start[indices]] for indices in self.by_task]
         self.start_share = start_share
+        self.weights = None
+        if task_weights is not None:
+            w = np.asarray(task_weights, np.float64)[present]
+            if not (np.isfinite(w).all() and (w > 0).all()):
+                raise ValueError("task weights must be finite and positive")
+            self.weights = torch.from_numpy(w / w.sum())
+
+    def shares(self) -> np.ndarray:
+        """Each present task's expected share of the draws, in task-index order."""
+        n = len(self.by_task)
+        return np.full(n, 1.0 / n) if self.weights is None else self.weights.numpy().copy()
 
     def sample(self, n: int, generator: torch.Generator) -> np.ndarray:
-        tasks = torch.randint(len(self.by_task), (n,), generator=generator).numpy()
+        if self.weights is None:  # uniform: the random numbers every earlier run drew
+            tasks = torch.randint(len(self.by_task), (n,), generator=generator).numpy()
+        else:
+            tasks = torch.multinomial(self.weights, n, replacement=True, generator=generator).numpy()
         picks = torch.rand(n, generator=generator, dtype=torch.float64).numpy()
         from_starts = np.zeros(n, bool)
         if self.start_share > 0:  # only then: a run without it draws exactly the random numbers it always did
@@ -175,16 +198,16 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
 
 
 class BatchStream:
-    """The training loop's batches, in order: task-uniform samples (`TaskUniformSampler`), augmented, on
+    """The training loop's batches, in order: samples drawn task by task (`TaskSampler`), augmented, on
     the device (what `rvt2 train` runs and `benchmarks/loop_bench.py` times). Making one costs the host
     about a millisecond at batch 192 (H200 machine), so it is made in turn: a thread preparing batches
     ahead measured no faster."""
 
     def __init__(self, packed: PackedSamples, cfg: ModelConfig, generator: torch.Generator, batch_size: int,
-                 augment: bool = True, start_share: float = 0.0):
+                 augment: bool = True, start_share: float = 0.0, task_weights: np.ndarray | None = None):
         self.packed, self.cfg, self.generator, self.batch_size = packed, cfg, generator, batch_size
         self.max_translation, self.max_yaw_deg = (0.125, 45.0) if augment else (0.0, 0.0)
-        self.sampler = TaskUniformSampler(packed.task, packed.keyframe_start, start_share)
+        self.sampler = TaskSampler(packed.task, packed.keyframe_start, start_share, task_weights)
 
     def __iter__(self):
         return self

@@ -22,13 +22,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rvt2cli.atomic import atomic_open, ensure_folder
+from rvt2cli.atomic import atomic_open, check_folder_can_be_made, ensure_folder
 from rvt2cli.data.paths import episode_paths
 from rvt2cli.errors import UserError
 from rvt2cli.model.config import ModelConfig, get_config
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.model.policy import RVT2Policy
-from rvt2cli.train.batches import BatchStream, PackedSamples, make_batch, pack
+from rvt2cli.train.batches import BatchStream, PackedSamples, TaskSampler, make_batch, pack
 from rvt2cli.train.checkpoint import Checkpoint, load_checkpoint, load_weights, save_checkpoint
 from rvt2cli.train.metrics import headline, precision_report, score_predictions, task_rows
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
@@ -176,6 +176,7 @@ class TrainingData:
     packed_val: PackedSamples | None
     instructions: InstructionCache
     aim_offsets: dict[str, list[float]] | None = None   # what the targets aim at (--aim-held), per task
+    task_weights: np.ndarray | None = None   # per task index (--task-weights); None: tasks drawn uniformly
 
 
 def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resume: Checkpoint | None, say) -> TrainingData:
@@ -196,6 +197,7 @@ def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
     if aims == {}:
         raise UserError(f"--aim-held: none of the tasks ({', '.join(samples.tasks)}) declares an aim_offset in its "
                         "tasks/*.toml; add one (m, in the TCP frame) or leave the flag out")
+    weights = task_weight_array(opts.task_weights, samples.tasks)
     packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims)
     packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims) if val_idx else None
     used_episodes = len({samples.episode_index[i] for i in selected})
@@ -203,7 +205,22 @@ def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
         + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
         + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else ""))
-    return TrainingData(samples, selected, packed, packed_val, cache, aims)
+    if weights is not None:
+        shares = TaskSampler(packed.task, task_weights=weights).shares()
+        say("task shares of the draws (--task-weights): "
+            + ", ".join(f"{samples.tasks[t]} {share:.0%}" for t, share in zip(np.unique(packed.task), shares)))
+    return TrainingData(samples, selected, packed, packed_val, cache, aims, weights)
+
+
+def task_weight_array(task_weights: dict[str, float] | None, tasks: list[str]) -> np.ndarray | None:
+    """`--task-weights` as one weight per task index (tasks it leaves out: 1); None: draw tasks uniformly."""
+    if task_weights is None:
+        return None
+    unknown = sorted(set(task_weights) - set(tasks))
+    if unknown:
+        raise UserError(f"--task-weights: no {', '.join(unknown)} in --data (its tasks: {', '.join(tasks)}); "
+                        "name tasks the data holds")
+    return np.array([task_weights.get(task, 1.0) for task in tasks], np.float64)
 
 
 def count_flops(policy: RVT2Policy, packed, device) -> float | None:
@@ -351,9 +368,11 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     lr = opts.lr if opts.lr is not None else 1.25e-5 * total_batch
     warmup = max(1, min(opts.warmup, opts.steps // 10))
     if rank == 0:
-        ensure_folder(run_dir, "run folder")
+        check_folder_can_be_made(run_dir, "run folder")
 
     data = load_data(opts, cfg, device, opts.progress and rank == 0, resume, say)
+    if rank == 0:  # only now: data that cannot be trained on leaves no empty run folder behind
+        ensure_folder(run_dir, "run folder")
     torch.manual_seed(opts.seed)  # here: loading the text encoder above may or may not have drawn random numbers
     policy = RVT2Policy(cfg, render_backend=opts.render_backend).to(device)
     if resume:
@@ -377,7 +396,8 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
         model = torch.nn.parallel.DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None)
     amp = opts.amp and device.type == "cuda"
     train_step = TrainStep(policy, optimizer, state.schedule, amp, opts.clip, model)
-    batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share)
+    batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share,
+                          data.task_weights)
     samples = data.samples
     info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs, "options": opts.to_json()}
     if data.aim_offsets is not None:
