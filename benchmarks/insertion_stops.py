@@ -7,8 +7,9 @@ journal, up to the episode's first insertion: the first keyframe that ignores co
 the closed gripper. Then the peg's head is measured in the hole's frame (x along the hole's axis, into
 the box): how far across the axis it stopped, the larger of its two offsets (the peg and the hole are
 square, with 3 mm of clearance per side), whether it went in, and how far the peg slid back through the
-fingers during that push (the peg's centre in the TCP's frame, before against after). With `--searched`, the folder of an
-`rvt2 eval --replay` of the same journal with the search, each episode is also marked by whether it
+fingers during that push (the peg's centre in the TCP's frame, before against after). With `--searched`, an `rvt2 eval` folder of the
+same episodes with the search (an `rvt2 eval --replay` of the journal, or the same checkpoint evaluated
+again: up to its first insertion an episode is the same), each episode is also marked by whether it
 succeeded there.
 
     python -m benchmarks.insertion_stops JOURNAL [--searched EVAL_DIR] [--workers 2] [--json out.json]
@@ -89,7 +90,7 @@ def _journal(path: Path) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("journal", type=Path, help="a policy's rvt2 eval journal (episodes.jsonl)")
-    parser.add_argument("--searched", type=Path, help="an `rvt2 eval --replay` folder of the same journal, with the search")
+    parser.add_argument("--searched", type=Path, help="an `rvt2 eval` folder of the same episodes with the search (a --replay of the journal, or the same checkpoint)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--json", help="write the stops here")
     args = parser.parse_args()

@@ -20,6 +20,9 @@
 #
 # insert_peg alone with 10 held-out demos (eight times the 8-task model's training per task):
 # `export TASKS=insert_peg HELDOUT_TASKS=insert_peg TEN= RUN=v8_peg`, then `all` (or `start`, `collect`).
+#
+# STRAIGHT=1 also evaluates the 25-demo model pushed straight (`rvt2 eval --no-insertion-search`, report
+# eval_${RUN}_straight) beside its evaluation with the insertion search: results v9 (gpu_results_v9.sh).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root
 export WORKERS=${WORKERS:-14}
@@ -30,6 +33,7 @@ export STEPS=${STEPS:-1200}
 TRAIN=${TRAIN:---rotation-bins 360 --rotation-sigma 2 --start-share 0.5 --aim-held --coarse-action-features}
 RUN=${RUN:-v8}
 TEN=${TEN-1}
+STRAIGHT=${STRAIGHT-}
 export HELDOUT_TASKS=${HELDOUT_TASKS:-"insert_peg plug_charger"} HELDOUT_EPISODES=${HELDOUT_EPISODES:-10}
 W=${W:-/tmp/w}
 
@@ -47,6 +51,10 @@ case ${1:-} in
       ten=$!
     fi
     RUN=$RUN OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline || echo "evaluating $RUN failed"
+    if [ -n "$STRAIGHT" ]; then
+      RUN=$RUN EVAL_NAME=${RUN}_straight EVAL_ARGS=--no-insertion-search bash $onebox eval \
+        || echo "evaluating $RUN pushed straight failed"
+    fi
     if [ -n "$TEN" ]; then
       wait "$ten" || echo "training ${RUN}_10 failed: $W/train_${RUN}_10.out"
       RUN=${RUN}_10 EVAL_EPISODES=${EVAL_EPISODES_10:-25} OFFLINE_DEMOS=$W/heldout_merged bash $onebox eval offline \
@@ -62,7 +70,7 @@ case ${1:-} in
   proxy) bash $onebox setup && bash "$self" proxy-chain && RUNS=$RUN bash $onebox results ;;
   collect)
     WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
-    RUNS="$RUN ${RUN}_10" bash $onebox results ;;
-  all) bash $onebox setup && bash "$self" chain && RUNS="$RUN ${RUN}_10" bash $onebox results ;;
+    RUNS="$RUN ${RUN}_10 ${RUN}_straight" bash $onebox results ;;
+  all) bash $onebox setup && bash "$self" chain && RUNS="$RUN ${RUN}_10 ${RUN}_straight" bash $onebox results ;;
   *) echo "usage: $0 stash|start|proxy-start|collect|all|proxy" >&2; exit 2 ;;
 esac
