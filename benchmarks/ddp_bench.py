@@ -1,14 +1,16 @@
 """Several GPUs: `rvt2 train` under torchrun, its scaling and whether a killed run resumes exactly.
 
     python -m benchmarks.ddp_bench --data DEMOS [--gpus 2] [--batch-size 96] [--steps 120] [--config rvt2]
-                                   [--compile] [--multi-gpu-run RUN_DIR] [--resume-check] [--resume-config small]
-                                   [--json out.json]
+                                   [--compile] [--train-args "OPTIONS"] [--multi-gpu-run RUN_DIR] [--resume-check]
+                                   [--resume-config small] [--json out.json]
     python -m benchmarks.ddp_bench --compare-losses ONE_GPU_RUN MULTI_GPU_RUN [--json out.json]
 
 Scaling: the real training loop (`python -m torch.distributed.run -m rvt2cli train`, the command a user
 runs) on 1 GPU and on --gpus GPUs at the same per-GPU batch; each run's samples/s is the median of its
 logged intervals after the first two (compilation, warm-up), read from its train.csv. Reported: both
-rates and their ratio (ideal: --gpus). --multi-gpu-run takes the several-GPU rate from a finished run of
+rates and their ratio (ideal: --gpus), and how many steps each run skipped as non-finite (a
+several-GPU run that skips steps the one-GPU run does not is a bug; --train-args adds a recipe's
+options, e.g. "--rotation-bins 360 --aim-held"). --multi-gpu-run takes the several-GPU rate from a finished run of
 the same command (a full training run, say) instead of starting one.
 Resume check (--resume-check): a short run of --resume-config on --gpus processes, three times: straight,
 straight again (how far two identical runs on this hardware differ: GPU kernels with floating-point
@@ -62,22 +64,30 @@ def steady_rate(run_dir: Path) -> float:
     return statistics.median(rates)
 
 
+def skipped_steps(run_dir: Path) -> int:
+    """Steps the run skipped as non-finite, from its last logged row."""
+    return int(logged(run_dir)[-1]["skipped"])
+
+
 def scaling(data: list[str], gpus: int, config: str, batch: int, steps: int, compile: bool, work: Path,
-            multi_gpu_run: Path | None) -> dict:
+            multi_gpu_run: Path | None, train_args: list[str]) -> dict:
     args = ["--data", *data, "--config", config, "--batch-size", str(batch), "--steps", str(steps), "--log-every", "10",
             "--val-episodes", "0", "--save-every", str(steps), "--warmup", "10"] + (["--compile"] if compile else [])
-    rates = {}
+    args += train_args
+    rates, skipped = {}, {}
     if multi_gpu_run is not None:
-        rates[gpus] = steady_rate(multi_gpu_run)
-        print(f"{gpus} GPUs ({multi_gpu_run}): {rates[gpus]:.0f} samples/s", flush=True)
+        rates[gpus], skipped[gpus] = steady_rate(multi_gpu_run), skipped_steps(multi_gpu_run)
+        print(f"{gpus} GPUs ({multi_gpu_run}): {rates[gpus]:.0f} samples/s, {skipped[gpus]} non-finite steps", flush=True)
     for processes in [p for p in (1, gpus) if p not in rates]:
         started = time.perf_counter()
         run(train_command(processes, work / f"scale_{processes}", args))
         rates[processes] = steady_rate(work / f"scale_{processes}")
-        print(f"{processes} GPU(s), batch {batch} each: {rates[processes]:.0f} samples/s "
-              f"(run took {time.perf_counter() - started:.0f} s)", flush=True)
-    return {"config": config, "batch_per_gpu": batch, "steps": steps, "compiled": compile,
+        skipped[processes] = skipped_steps(work / f"scale_{processes}")
+        print(f"{processes} GPU(s), batch {batch} each: {rates[processes]:.0f} samples/s, {skipped[processes]} "
+              f"non-finite steps skipped (run took {time.perf_counter() - started:.0f} s)", flush=True)
+    return {"config": config, "batch_per_gpu": batch, "steps": steps, "compiled": compile, "train_args": train_args,
             "samples_per_s": {str(k): rates[k] for k in sorted(rates)}, "scaling": rates[gpus] / rates[1], "ideal": gpus,
+            "skipped_steps": {str(k): skipped[k] for k in sorted(skipped)},
             "multi_gpu_run": str(multi_gpu_run) if multi_gpu_run else None}
 
 
@@ -152,6 +162,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--multi-gpu-run", type=Path, help="take the --gpus rate from this finished run's train.csv")
+    parser.add_argument("--train-args", default="",
+                        help="more rvt2 train options for the scaling runs, in one string (a recipe's options)")
     parser.add_argument("--skip-scaling", action="store_true")
     parser.add_argument("--resume-check", action="store_true")
     parser.add_argument("--resume-config", default="small")
@@ -175,7 +187,7 @@ def main() -> None:
         report["resume"] = resume_check(args.data, args.gpus, args.resume_config, work)
     if not args.skip_scaling:
         report["scaling"] = scaling(args.data, args.gpus, args.config, args.batch_size, args.steps, args.compile, work,
-                                    args.multi_gpu_run)
+                                    args.multi_gpu_run, args.train_args.split())
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
 

@@ -1,9 +1,11 @@
-"""Process-wide settings: the Vulkan driver the simulator renders with, and the random generators an
-episode draws from."""
+"""Process-wide settings: the Vulkan driver the simulator renders with, the random generators an
+episode draws from, and worker processes that end with the process that started them."""
 
 import ctypes
 import os
 import random
+import signal
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -124,3 +126,20 @@ def _reset_ompl_generator() -> None:
     lib = ctypes.CDLL(found[0])
     lib._ZN4ompl3msg11setLogLevelENS0_8LogLevelE(ctypes.c_int(4))  # ompl::msg::LOG_NONE
     lib._ZN4ompl3RNG7setSeedEm(ctypes.c_ulong(OMPL_SEED))
+
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def end_with_parent() -> None:
+    """Call first in a worker process (record, eval): when the process that started it ends, even killed
+    with SIGTERM, which runs none of its clean-up, the worker gets SIGTERM too, instead of finishing its
+    episode and moving a file into a folder whose command has ended. Linux only; elsewhere a no-op."""
+    if not sys.platform.startswith("linux"):
+        return
+    import multiprocessing
+
+    starter = multiprocessing.parent_process()
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if starter is not None and os.getppid() != starter.pid:  # it ended before the call above
+        os.kill(os.getpid(), signal.SIGTERM)

@@ -1,5 +1,8 @@
 """`rvt2 record` and `rvt2 extract-keyframes` in the real simulator, on real MCAP files."""
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -166,3 +169,54 @@ def test_own_insert_peg_expert_succeeds_where_maniskills_does_not():
     ours = run_expert(env, task.expert, 10002, task.max_steps)
     assert (theirs.status, ours.status) == ("failed", "success")
     assert head_theirs < -0.09  # ManiSkill's peg stopped at the face, a peg's length from success
+
+
+def _worker_state(pid: int) -> tuple[str, int] | None:
+    """(state, parent) of a running multiprocessing worker (not a resource tracker), else None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return None
+    return (fields[0], int(fields[1])) if b"spawn_main" in cmdline and fields[0] != "Z" else None
+
+
+def _is_worker(pid: int) -> bool:
+    return _worker_state(pid) is not None
+
+
+def _live_workers(parent: int) -> set[int]:
+    """The multiprocessing workers among `parent`'s children."""
+    pids = (int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit())
+    return {pid for pid in pids if (state := _worker_state(pid)) and state[1] == parent}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers end with their parent on Linux")
+def test_killed_record_leaves_no_worker_behind(tmp_path):
+    # `kill` (SIGTERM) runs none of rvt2 record's clean-up: its workers must end with it, not finish their
+    # episodes and move files into a folder whose command has ended
+    import signal
+    import subprocess
+    import time
+
+    out = tmp_path / "demos"
+    command = [sys.executable, "-m", "rvt2cli", "record", "--task", "push_cube", "--episodes", "8", "--workers", "2",
+               "--out", str(out), "--no-progress"]
+    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 300
+        while not list(out.glob(".*.mcap")) and time.monotonic() < deadline:  # a worker is writing an episode
+            assert proc.poll() is None, "rvt2 record ended before it was killed"
+            time.sleep(0.2)
+        workers = _live_workers(proc.pid)
+        assert len(workers) == 2, workers
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    visible = sorted(p.name for p in out.glob("[!.]*"))
+    deadline = time.monotonic() + 30
+    while any(_is_worker(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [pid for pid in workers if _is_worker(pid)], "workers outlived rvt2 record"
+    time.sleep(1)
+    assert sorted(p.name for p in out.glob("[!.]*")) == visible  # no episode moved in after the kill

@@ -3,6 +3,8 @@
 import csv
 import json
 
+import re
+
 import pytest
 import torch
 
@@ -117,8 +119,17 @@ def test_non_finite_steps_are_skipped_then_training_stops(tiny_dataset, tmp_path
     # an absurd learning rate blows the weights up within a step or two; every later step is non-finite
     opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "run"), steps=50, max_bad_steps=3,
                         **{**TINY_TRAIN, "lr": 1e30})
-    with pytest.raises(UserError, match=r"training diverged: 4 steps with a non-finite loss or gradient.*lower --lr"):
+    with pytest.raises(UserError, match=r"training diverged: 4 steps with a non-finite loss or gradient") as raised:
         train(opts, say=lambda *_: None)
+    # the line says what was not finite, each term with its count of skipped steps, then what to try
+    message = str(raised.value)
+    terms = re.search(r"not finite: (.*)\); lower --lr or check the data$", message)
+    assert terms, message
+    counts = {name: int(n) for name, n in
+              (re.fullmatch(r"(.+) in (\d+) steps?", part).groups() for part in terms.group(1).split(", "))}
+    assert set(counts) <= {"heatmap1", "heatmap2", "rot_x", "rot_y", "rot_z", "gripper", "collision",
+                           "gradient only"}, counts
+    assert counts and all(1 <= n <= 4 for n in counts.values()), counts
 
 
 def test_torchrun_trains_with_two_processes(tiny_dataset, tmp_path):

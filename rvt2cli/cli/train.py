@@ -93,12 +93,13 @@ def options_from(args) -> "TrainOptions":  # noqa: F821 - imported lazily
 
 
 def run(args) -> int:
-    from rvt2cli.train.trainer import train
+    from rvt2cli.train.trainer import describe_terms, train
 
     result = train(options_from(args))
     v = result.last_validation
     print(f"trained {result.steps} steps in {result.seconds:.0f} s; checkpoint: {result.run_dir}/last"
           + (f"; validation: stage-2 error {v['translation_mm_median']:.1f} mm median, {v['rotation_deg_median']:.1f} deg, "
              f"gripper {v['gripper_accuracy']:.0%}" if v else "")
-          + (f"; {result.skipped_steps} non-finite steps skipped" if result.skipped_steps else ""))
+          + (f"; {result.skipped_steps} non-finite steps skipped (not finite: {describe_terms(result.skipped_terms)})"
+             if result.skipped_steps else ""))
     return 0

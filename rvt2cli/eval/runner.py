@@ -22,6 +22,7 @@ from rvt2cli.eval.media import write_rollout, write_video
 from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
+from rvt2cli.runtime import end_with_parent
 from rvt2cli.tasks import get_task
 
 
@@ -94,6 +95,7 @@ _worker: _Worker | None = None
 
 def _init(opts: EvalOptions, demos: dict) -> None:
     global _worker
+    end_with_parent()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 

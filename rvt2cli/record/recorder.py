@@ -23,6 +23,7 @@ from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.record.expert import ExpertRun, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
 from rvt2cli.robot import RobotFacts
+from rvt2cli.runtime import end_with_parent
 from rvt2cli.tasks import Task, get_task
 
 
@@ -117,6 +118,7 @@ _worker_args = None
 
 def _init_worker(task_name: str, out_dir: str, options: RecordOptions) -> None:
     global _worker_env, _worker_args
+    end_with_parent()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 

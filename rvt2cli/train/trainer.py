@@ -35,7 +35,7 @@ from rvt2cli.train.optim import make_optimizer, warmup_cosine
 from rvt2cli.train.options import TrainOptions, conflicts
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
 from rvt2cli.train.samples import SampleSet, load_samples, select_samples
-from rvt2cli.train.step import TrainStep
+from rvt2cli.train.step import StepResult, TrainStep
 from rvt2cli.tasks import aim_offsets
 
 __all__ = ["TrainOptions", "TrainResult", "train"]
@@ -47,6 +47,7 @@ class TrainResult:
     steps: int
     losses: list[float] = field(default_factory=list)   # total loss of every step run in this call
     skipped_steps: int = 0
+    skipped_terms: dict[str, int] = field(default_factory=dict)  # this process's skipped steps by what was not finite
     last_validation: dict | None = None
     seconds: float = 0.0
     samples_per_s: float | None = None   # the loop's throughput after its first logged interval
@@ -352,6 +353,19 @@ def _write_run_json(run_dir: Path, update: dict) -> None:
 
 # --- the loop ------------------------------------------------------------------------------------------
 
+def non_finite_terms(step: StepResult) -> list[str]:
+    """What was not finite in a skipped step, as this process saw it: its loss terms, or else only the
+    gradient (which, averaged over processes, may come from another process's loss)."""
+    terms = [name for name, value in step.losses.items() if name != "total" and not torch.isfinite(value).item()]
+    return terms or ["gradient only"]
+
+
+def describe_terms(counts: dict[str, int]) -> str:
+    """{"heatmap2": 5, "gradient only": 2} -> "heatmap2 in 5 steps, gradient only in 2" (most first)."""
+    ordered = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+    return ", ".join(f"{name} in {n} step{'s' if n != 1 else ''}" for name, n in ordered)
+
+
 def train(opts: TrainOptions, say=print) -> TrainResult:
     start_time = time.perf_counter()
     rank, world = _distributed()
@@ -422,12 +436,16 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
         finite = torch.stack([r.finite for _, r, _ in pending]).cpu().tolist()
         now = time.perf_counter()
         rate = total_batch * (pending[-1][0] - last_read_step) / max(now - last_read, 1e-9)
-        for (at, _, _), ok in zip(pending, finite):
+        for (at, bad, _), ok in zip(pending, finite):
             if not ok:
                 state.skipped += 1
+                for term in non_finite_terms(bad):
+                    result.skipped_terms[term] = result.skipped_terms.get(term, 0) + 1
                 if state.skipped > opts.max_bad_steps:
+                    where = f" on process {rank} of {world}" if world > 1 else ""
                     raise UserError(f"training diverged: {state.skipped} steps with a non-finite loss or gradient "
-                                    f"(last at step {at}); lower --lr or check the data")
+                                    f"(last at step {at}; not finite{where}: {describe_terms(result.skipped_terms)}); "
+                                    f"lower --lr or check the data" + ("; or train on one GPU to compare" if world > 1 else ""))
         result.losses.extend(totals)
         at, last, lr_now = pending[-1]
         if rank == 0:
