@@ -9,8 +9,9 @@
 # (eval_${RUN}_ins, then eval_${RUN}_rest), and scored offline on the held-out demos.
 #
 # As run on 2 x H200 it did not train: the two-process run skipped non-finite steps from step 70 and
-# stopped at step 510 (51 skipped), while one GPU on the same demos skips none (RESULTS v10). Until that
-# is found, NPROC=1 trains on one GPU (STEPS=1200 fits a 30-minute machine).
+# stopped at step 511 (51 skipped), while one GPU on the same demos skips none (RESULTS v10). Until that
+# is found, `NPROC=1 STEPS=1200` trains on one GPU (about 23 minutes in all on one H200 with 16 cores,
+# estimated from v8's phases; each insertion then gets 300 of v8's steps' worth, each other task 100).
 #
 # On a workstation with rvt2 and its simulator installed: `bash scripts/offline-gpu-host/gpu_results_v10.sh all`.
 # On a GPU machine without network access: `stash` (x3), `start`, then `collect` until the log says the
@@ -19,7 +20,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root
 onebox=scripts/offline-gpu-host/gpu_onebox.sh
 self=scripts/offline-gpu-host/$(basename "$0")
-export NPROC=${NPROC:-2} WORKERS=${WORKERS:-30} STEPS=${STEPS:-1800} RUN=${RUN:-v10}
+export NPROC=${NPROC:-2} WORKERS=${WORKERS:-$(( $(nproc) - 2 ))} STEPS=${STEPS:-1800} RUN=${RUN:-v10}  # 30 workers as run
 COMPILE=${COMPILE---compile}          # a dry run on a CPU: COMPILE= STEPS=8 EVAL_EPISODES=1 (and gpu_onebox.sh's settings)
 TRAIN=${TRAIN:---rotation-bins 360 --rotation-sigma 2 --start-share 0.5 --aim-held --coarse-action-features --task-weights insert_peg=3,plug_charger=3}
 INSERTIONS=${INSERTIONS:-insert_peg,plug_charger}
