@@ -20,7 +20,7 @@
 # Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
 # "--compile --seed 1", "--episodes-per-task 10 --cameras front"), DATA (the demos RUN trains on),
 # OFFLINE_DEMOS (the held-out demos RUN is scored on), EVAL_EPISODES, EVAL_ARGS and EVAL_NAME (eval's options
-# and report name), WORKERS, RUNS (results).
+# and report name), WORKERS, RUNS (results), EXTRA_PYTHONPATH (a folder searched first, e.g. a sitecustomize.py).
 # gpu_results_v2.sh, gpu_results_v2_1gpu.sh and gpu_results_v3.sh hold the exact commands behind docs/RESULTS.md.
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root: every path below is relative to it
@@ -42,7 +42,7 @@ DEVICE=${DEVICE:-cuda}
 WAIT_S=${WAIT_S:-560}   # how long `wait` waits inside one command
 OUT=${OUT:-/tmp/rvt2-out}
 mkdir -p "$W" "$OUT"
-export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 RVT2_EMBEDDINGS=$SITE/embeddings.safetensors
+export PYTHONPATH=${EXTRA_PYTHONPATH:+$EXTRA_PYTHONPATH:}$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 RVT2_EMBEDDINGS=$SITE/embeddings.safetensors
 # toppra's docstrings hold invalid escapes that Python 3.12 reports while compiling them, in every process
 export PYTHONWARNINGS=${PYTHONWARNINGS:-ignore::SyntaxWarning}
 export LD_LIBRARY_PATH=${LD_LIBRARY_PATH:-}:/usr/local/nvidia/lib64:/usr/local/nvidia/lib
