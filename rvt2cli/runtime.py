@@ -134,7 +134,9 @@ PR_SET_PDEATHSIG = 1  # linux/prctl.h
 def end_with_parent() -> None:
     """Call first in a worker process (record, eval): when the process that started it ends, even killed
     with SIGTERM, which runs none of its clean-up, the worker gets SIGTERM too, instead of finishing its
-    episode and moving a file into a folder whose command has ended. Linux only; elsewhere a no-op."""
+    episode and moving a file into a folder whose command has ended. Linux only; elsewhere a no-op.
+    (Linux signals the worker when the *thread* that started it ends: rvt2's pools start their workers
+    from the main thread, in `submit`.)"""
     if not sys.platform.startswith("linux"):
         return
     import multiprocessing
