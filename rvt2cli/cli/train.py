@@ -100,6 +100,7 @@ def run(args) -> int:
     print(f"trained {result.steps} steps in {result.seconds:.0f} s; checkpoint: {result.run_dir}/last"
           + (f"; validation: stage-2 error {v['translation_mm_median']:.1f} mm median, {v['rotation_deg_median']:.1f} deg, "
              f"gripper {v['gripper_accuracy']:.0%}" if v else "")
-          + (f"; {result.skipped_steps} non-finite steps skipped (not finite: {describe_terms(result.skipped_terms)})"
-             if result.skipped_steps else ""))
+          + (f"; {result.skipped_steps} non-finite steps skipped" if result.skipped_steps else "")
+          # the terms of this call's skipped steps (a resumed run's count includes the steps before it)
+          + (f" (not finite: {describe_terms(result.skipped_terms)})" if result.skipped_terms else ""))
     return 0
