@@ -15,12 +15,14 @@
 #
 # On a workstation with rvt2 and its simulator installed: `bash scripts/offline-gpu-host/gpu_results_v10.sh all`.
 # On a GPU machine without network access: `stash` (x3), `start`, then `collect` until the log says the
-# chain is done. Recording with 30 workers took 625 s there (v8: 310 s with 14 workers on one H200).
+# chain is done. As run it had WORKERS=30: recording took 625 s (v8: 310 s with 14 workers on one H200).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root
 onebox=scripts/offline-gpu-host/gpu_onebox.sh
 self=scripts/offline-gpu-host/$(basename "$0")
-export NPROC=${NPROC:-2} WORKERS=${WORKERS:-$(( $(nproc) - 2 ))} STEPS=${STEPS:-1800} RUN=${RUN:-v10}  # 30 workers as run
+# 14 workers: as run, 30 workers on the 32 cores recorded each task in 70-77 s, against 30-45 s with 14 on
+# v8's 16-core H200 machine (not measured side by side)
+export NPROC=${NPROC:-2} WORKERS=${WORKERS:-14} STEPS=${STEPS:-1800} RUN=${RUN:-v10}
 COMPILE=${COMPILE---compile}          # a dry run on a CPU: COMPILE= STEPS=8 EVAL_EPISODES=1 (and gpu_onebox.sh's settings)
 TRAIN=${TRAIN:---rotation-bins 360 --rotation-sigma 2 --start-share 0.5 --aim-held --coarse-action-features --task-weights insert_peg=3,plug_charger=3}
 INSERTIONS=${INSERTIONS:-insert_peg,plug_charger}
