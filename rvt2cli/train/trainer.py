@@ -15,6 +15,7 @@ import csv
 import json
 import os
 import time
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -47,7 +48,7 @@ class TrainResult:
     steps: int
     losses: list[float] = field(default_factory=list)   # total loss of every step run in this call
     skipped_steps: int = 0
-    skipped_terms: dict[str, int] = field(default_factory=dict)  # this process's skipped steps by what was not finite
+    skipped_terms: Counter = field(default_factory=Counter)  # this process's skipped steps by what was not finite
     last_validation: dict | None = None
     seconds: float = 0.0
     samples_per_s: float | None = None   # the loop's throughput after its first logged interval
@@ -360,8 +361,9 @@ def non_finite_terms(step: StepResult) -> list[str]:
     return terms or ["gradient only"]
 
 
-def describe_terms(counts: dict[str, int]) -> str:
-    """{"heatmap2": 5, "gradient only": 2} -> "heatmap2 in 5 steps, gradient only in 2" (most first)."""
+def describe_terms(counts: Counter) -> str:
+    """Counter({"heatmap2": 5, "gradient only": 2}) -> "heatmap2 in 5 steps, gradient only in 2 steps" (most
+    first, then by name)."""
     ordered = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
     return ", ".join(f"{name} in {n} step{'s' if n != 1 else ''}" for name, n in ordered)
 
@@ -439,8 +441,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
         for (at, bad, _), ok in zip(pending, finite):
             if not ok:
                 state.skipped += 1
-                for term in non_finite_terms(bad):
-                    result.skipped_terms[term] = result.skipped_terms.get(term, 0) + 1
+                result.skipped_terms.update(non_finite_terms(bad))
                 if state.skipped > opts.max_bad_steps:
                     where = f" on process {rank} of {world}" if world > 1 else ""
                     raise UserError(f"training diverged: {state.skipped} steps with a non-finite loss or gradient "
