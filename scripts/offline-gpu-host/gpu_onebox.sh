@@ -100,9 +100,9 @@ while [ $# -gt 0 ]; do
     "${RVT2[@]}" extract-keyframes "$W/demos" 2>&1 | tail -1
     phase keyframes $(( $(clock) - t ))
     ;;
-  merged)  # a copy of the demos and held-out demos whose keyframe refinements under MERGE_MM are merged
+  merged)  # a copy of the demos and held-out demos (MERGE_DIRS) whose keyframe refinements under MERGE_MM are merged
     t=$(clock)
-    for d in demos heldout; do
+    for d in ${MERGE_DIRS:-demos heldout}; do
       [ -d "$W/$d" ] || continue
       rm -rf "$W/${d}_merged" && cp -r "$W/$d" "$W/${d}_merged"
       "${RVT2[@]}" extract-keyframes "$W/${d}_merged" --merge-refinements "${MERGE_MM:-30}" | tail -1

@@ -36,10 +36,8 @@ case ${1:-} in
   chain)
     bash $onebox record merged
     # the held-out demos record on a few cores while the model trains on the GPUs
-    (HELDOUT_TASKS=${HELDOUT_TASKS:-"insert_peg plug_charger"} HELDOUT_EPISODES=${HELDOUT_EPISODES:-10} WORKERS=8 bash $onebox heldout \
-      && rm -rf "$W/heldout_merged" && cp -r "$W/heldout" "$W/heldout_merged" \
-      && python3 -m rvt2cli extract-keyframes "$W/heldout_merged" --merge-refinements "${MERGE_MM:-30}" | tail -1) \
-      > "$W/heldout.out" 2>&1 &
+    HELDOUT_TASKS=${HELDOUT_TASKS:-"insert_peg plug_charger"} HELDOUT_EPISODES=${HELDOUT_EPISODES:-10} WORKERS=8 \
+      MERGE_DIRS=heldout bash $onebox heldout merged > "$W/heldout.out" 2>&1 &
     heldout=$!
     DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $TRAIN" bash $onebox train
     EVAL_NAME=${RUN}_ins EVAL_ARGS="--tasks $INSERTIONS" bash $onebox eval || echo "evaluating $RUN on $INSERTIONS failed"
