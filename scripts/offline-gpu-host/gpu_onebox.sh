@@ -16,6 +16,7 @@
 #   bash $K/gpu_onebox.sh eval repro             # evaluate RUN, then part of it again: same episodes?
 #   bash $K/gpu_onebox.sh results                # phase times, logs, reports of RUNS -> $OUT/results.tgz
 #   bash $K/gpu_onebox.sh weights FIRST COUNT    # float16 weight pieces FIRST.. (and meta.tar with 0) to $OUT
+#   bash $K/gpu_onebox.sh stash setup restore    # on another machine: RUN's weights, carried in .gpu/weights*/
 # Online:  tar -xf meta.tar in the pieces' folder; python $K/gpu_checkpoint.py restore PIECES_DIR runs/NAME
 # Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
 # "--compile --seed 1", "--episodes-per-task 10 --cameras front"), DATA (the demos RUN trains on),
@@ -42,7 +43,9 @@ DEVICE=${DEVICE:-cuda}
 WAIT_S=${WAIT_S:-560}   # how long `wait` waits inside one command
 OUT=${OUT:-/tmp/rvt2-out}
 mkdir -p "$W" "$OUT"
-export PYTHONPATH=${EXTRA_PYTHONPATH:+$EXTRA_PYTHONPATH:}$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 RVT2_EMBEDDINGS=$SITE/embeddings.safetensors
+export PYTHONPATH=${EXTRA_PYTHONPATH:+$EXTRA_PYTHONPATH:}$SITE:$PWD PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1
+# the packed instruction embeddings, once setup has unpacked them (an installed rvt2 embeds its own)
+if [ -f "$SITE/embeddings.safetensors" ]; then export RVT2_EMBEDDINGS=$SITE/embeddings.safetensors; fi
 # toppra's docstrings hold invalid escapes that Python 3.12 reports while compiling them, in every process
 export PYTHONWARNINGS=${PYTHONWARNINGS:-ignore::SyntaxWarning}
 export LD_LIBRARY_PATH=${LD_LIBRARY_PATH:-}:/usr/local/nvidia/lib64:/usr/local/nvidia/lib
@@ -63,12 +66,18 @@ while [ $# -gt 0 ]; do
   case $step in
   stash)
     cp .gpu/site.part.* .gpu/site.sha256 "$W/" 2>/dev/null || true
+    # a run's weight pieces (`weights` on another machine, then `tar -xf meta.tar`), carried as .gpu/weights*/
+    for d in .gpu/weights*/; do
+      if [ -d "$d" ]; then mkdir -p "$W/weights" && cp "$d"* "$W/weights/"; fi
+    done
     if [ -d "$HELDOUT" ]; then mkdir -p "$W/heldout" && cp "$HELDOUT"/* "$W/heldout/"; fi
     ls -l "$W"
     ;;
   setup)
     t=$(clock)
-    if [ ! -f "$SITE/.unpacked" ]; then
+    if [ ! -f "$SITE/.unpacked" ] && [ ! -f "$W/site.sha256" ]; then
+      echo "no site pieces stashed in $W: using the rvt2 installed here"
+    elif [ ! -f "$SITE/.unpacked" ]; then
       (cd "$W" && sha256sum -c site.sha256)
       mkdir -p "$SITE" && cat "$W"/site.part.* | xz -d | tar -x -C "$SITE" && touch "$SITE/.unpacked"
     fi
@@ -108,6 +117,9 @@ while [ $# -gt 0 ]; do
       "${RVT2[@]}" extract-keyframes "$W/${d}_merged" --merge-refinements "${MERGE_MM:-30}" | tail -1
     done
     phase merged $(( $(clock) - t ))
+    ;;
+  restore)  # RUN's weights from the pieces stash kept in $W/weights (another machine trained it)
+    python3 $KIT/gpu_checkpoint.py restore "$W/weights" "$W/runs/$RUN"
     ;;
   oracle)  # the executor's ceiling on the evaluation seeds: the expert's keyframes, closed loop
     t=$(clock)
@@ -231,7 +243,7 @@ while [ $# -gt 0 ]; do
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|bench|record|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
+    echo "usage: $0 stash|setup|bench|record|heldout|merged|loopbench|train|restore|ddpbench|eval|oracle|replay|repro|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
     exit 2
     ;;
   esac
