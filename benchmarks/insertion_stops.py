@@ -1,18 +1,22 @@
-"""Where a policy's first insertion leaves insert_peg's peg when it is pushed straight, and which of those
-pegs the executor's insertion search brings in.
+"""Where a policy's first insertion leaves the held object when it is pushed straight, and which of those
+the executor's insertion search brings in (insert_peg, and plug_charger with --task).
 
-For every insert_peg episode of a policy's `rvt2 eval` journal, the recorded keyframes are replayed
+For every episode of the task in a policy's `rvt2 eval` journal, the recorded keyframes are replayed
 (`rvt2cli.eval.sources.ReplaySource`) by the executor without its search, the executor that recorded the
-journal, up to the episode's first insertion: the first keyframe that ignores collisions with the peg in
-the closed gripper. Then the peg's head is measured in the hole's frame (x along the hole's axis, into
-the box): how far across the axis it stopped, the larger of its two offsets (the peg and the hole are
-square, with 3 mm of clearance per side), whether it went in, and how far the peg slid back through the
-fingers during that push (the peg's centre in the TCP's frame, before against after). With `--searched`, an `rvt2 eval` folder of the
-same episodes with the search (an `rvt2 eval --replay` of the journal, or the same checkpoint evaluated
-again: up to its first insertion an episode is the same), each episode is also marked by whether it
-succeeded there.
+journal, up to the episode's first insertion: the first keyframe that ignores collisions with the object
+in the closed gripper. Then the object is measured against its goal:
+- insert_peg: the peg's head in the hole's frame (x along the hole's axis, into the box): how far across
+  the axis it stopped, the larger of its two offsets (the peg and the hole are square, with 3 mm of
+  clearance per side), and how far the peg slid back through the fingers during that push (the peg's
+  centre in the TCP's frame, before against after);
+- plug_charger: the charger in its goal's frame (x along the receptacle's axis) where the push starts,
+  since pushed against the receptacle's face it pivots in the fingers: how far across the axis it is, the
+  larger of its two offsets (0.5 mm of clearance), and its turn from the goal; and the same after the push.
+Whether it went in is measured for both. With `--searched`, an `rvt2 eval` folder of the same episodes
+with the search (an `rvt2 eval --replay` of the journal, or the same checkpoint evaluated again: up to its
+first insertion an episode is the same), each episode is also marked by whether it succeeded there.
 
-    python -m benchmarks.insertion_stops JOURNAL [--searched EVAL_DIR] [--workers 2] [--json out.json]
+    python -m benchmarks.insertion_stops JOURNAL [--task plug_charger] [--searched EVAL_DIR] [--workers 2] [--json out.json]
 """
 
 import argparse
@@ -27,7 +31,8 @@ from benchmarks.machine import describe
 from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import NAME, read_journal
 
-BANDS_MM = (3.0, 5.0, 10.0, 20.0)  # across the axis: within the clearance, then wider and wider
+# across the axis: within the clearance, then wider and wider
+BANDS_MM = {"insert_peg": (3.0, 5.0, 10.0, 20.0), "plug_charger": (0.5, 1.0, 2.0, 5.0)}
 
 
 def first_insertion(steps: list[dict]) -> int | None:
@@ -45,7 +50,8 @@ def peg_in_hand_mm(env) -> float:
 
 
 def first_insertion_stop(record: dict) -> dict:
-    """Replays an episode to its first insertion, pushed straight: where the peg stopped, and how it slid."""
+    """Replays an episode to its first insertion, pushed straight: where the peg stopped and how it slid, or
+    where the charger started and where it stopped (`after`)."""
     from rvt2cli.eval.rollout import run_episode
     from rvt2cli.eval.sources import ReplaySource
     from rvt2cli.record.scene import make_env
@@ -54,30 +60,48 @@ def first_insertion_stop(record: dict) -> dict:
     index = first_insertion(record["steps"])
     if index is None:
         return {"seed": record["seed"], "insertion": None}
-    task = get_task("insert_peg")
+    task = get_task(record["task"])
     env = _envs.setdefault(task.name, make_env(task))
     before = {}
 
-    class Replay(ReplaySource):  # notes where the peg sits in the hand before the insertion
+    class Replay(ReplaySource):  # notes where the held object sits before the insertion
         def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry=0):
-            if keyframes_done == index:
-                before["peg_mm"] = peg_in_hand_mm(env)
+            if keyframes_done == index:  # the arm stands where the insertion's push starts
+                if task.name == "insert_peg":
+                    before["peg_mm"] = peg_in_hand_mm(env)
+                else:
+                    before.update(charger_at_goal(env))
             return super().next(cloud, gripper_open, finger_positions, keyframes_done, retry)
 
     outcome = run_episode(env, task, record["seed"], Replay([record]), record["instruction"],
                           keyframe_budget=index + 1, step_budget=record["step_budget"], search=False)
-    head = 1000.0 * env.unwrapped.evaluate()["peg_head_pos_at_hole"][0].numpy().astype(float)
-    return {"seed": record["seed"], "insertion": index, "went_in": outcome.success, "head_mm": head.round(2).tolist(),
-            "across_mm": round(float(np.abs(head[1:]).max()), 2),
-            "slid_back_mm": round(before["peg_mm"] - peg_in_hand_mm(env), 2)}
+    stop = {"seed": record["seed"], "insertion": index, "went_in": outcome.success}
+    if task.name == "insert_peg":
+        head = 1000.0 * env.unwrapped.evaluate()["peg_head_pos_at_hole"][0].numpy().astype(float)
+        return {**stop, "head_mm": head.round(2).tolist(), "across_mm": round(float(np.abs(head[1:]).max()), 2),
+                "slid_back_mm": round(before["peg_mm"] - peg_in_hand_mm(env), 2)}
+    return {**stop, **before, "after": charger_at_goal(env)}
 
 
-def _band(across: float) -> str:
-    edges = (0.0, *BANDS_MM)
+def charger_at_goal(env) -> dict:
+    """The charger in its goal's frame (x along the receptacle's axis): offset, mm; the larger offset across
+    the axis, mm; and its turn from the goal, degrees."""
+    scene = env.unwrapped
+    offset = 1000.0 * (scene.goal_pose.inv() * scene.charger.pose).p[0].numpy().astype(float)
+    return {"offset_mm": offset.round(2).tolist(), "across_mm": round(float(np.abs(offset[1:]).max()), 2),
+            "turn_deg": round(float(np.degrees(scene.evaluate()["obj_to_goal_angle"][0])), 2)}
+
+
+def _band(across: float, bands: tuple[float, ...]) -> str:
+    edges = (0.0, *bands)
     for low, high in zip(edges, edges[1:]):
         if across <= high:
             return f"{low:g}-{high:g} mm"
-    return f"> {BANDS_MM[-1]:g} mm"
+    return f"> {bands[-1]:g} mm"
+
+
+def _median(values: list[float]) -> float | None:
+    return float(np.median(values)) if values else None
 
 
 def _journal(path: Path) -> list[dict]:
@@ -90,43 +114,51 @@ def _journal(path: Path) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("journal", type=Path, help="a policy's rvt2 eval journal (episodes.jsonl)")
+    parser.add_argument("--task", choices=sorted(BANDS_MM), default="insert_peg")
     parser.add_argument("--searched", type=Path, help="an `rvt2 eval` folder of the same episodes with the search (a --replay of the journal, or the same checkpoint)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--json", help="write the stops here")
     args = parser.parse_args()
     if not args.journal.is_file():
         raise SystemExit(f"insertion_stops: {args.journal}: no such evaluation journal (an episodes.jsonl)")
-    records = [r for r in _journal(args.journal) if r["task"] == "insert_peg" and r["source"] == "policy"]
+    records = [r for r in _journal(args.journal) if r["task"] == args.task and r["source"] == "policy"]
     if not records:
-        raise SystemExit(f"insertion_stops: {args.journal}: no insert_peg episodes of a policy")
+        raise SystemExit(f"insertion_stops: {args.journal}: no {args.task} episodes of a policy")
     searched = {}
     if args.searched:
         if not (args.searched / NAME).is_file():
             raise SystemExit(f"insertion_stops: {args.searched / NAME}: no evaluation journal; give an `rvt2 eval --out` folder")
-        searched = {r["seed"]: r["success"] for r in _journal(args.searched / NAME) if r["task"] == "insert_peg"}
+        searched = {r["seed"]: r["success"] for r in _journal(args.searched / NAME) if r["task"] == args.task}
     with ProcessPoolExecutor(args.workers) as pool:
         stops = list(pool.map(first_insertion_stop, records))
     for stop in stops:
         if stop["seed"] in searched:
             stop["searched_success"] = searched[stop["seed"]]
     inserted = [s for s in stops if s["insertion"] is not None]
-    bands = [_band(0.0)] + [_band(b + 1e-9) for b in BANDS_MM]
-    print(f"insert_peg, {len(records)} episodes, {len(inserted)} with an insertion; the peg's head after the first, "
-          "pushed straight, across the hole's axis:\n")
-    print("| across the axis | episodes | went in | success with the search | peg slid back in the fingers, median mm |\n"
-          "|---|---|---|---|---|")
+    limits = BANDS_MM[args.task]
+    bands = [_band(0.0, limits)] + [_band(b + 1e-9, limits) for b in limits]
+    peg = args.task == "insert_peg"
+    where = ("the peg's head after the first, pushed straight, across the hole's axis" if peg else
+             "the charger before the first (where the push starts), across the receptacle's axis")
+    last = "peg slid back in the fingers, median mm" if peg else "turn from the goal, median deg"
+    print(f"{args.task}, {len(records)} episodes, {len(inserted)} with an insertion; {where}:\n")
+    print(f"| across the axis | episodes | went in | success with the search | {last} |\n|---|---|---|---|---|")
     rows = []
     for band in bands:
-        mine = [s for s in inserted if _band(s["across_mm"]) == band]
+        mine = [s for s in inserted if _band(s["across_mm"], limits) == band]
         went = sum(s["went_in"] for s in mine)
         found = sum(s.get("searched_success", False) for s in mine)
-        slid = float(np.median([s["slid_back_mm"] for s in mine if not s["went_in"]])) if any(not s["went_in"] for s in mine) else None
+        if peg:
+            detail = _median([s["slid_back_mm"] for s in mine if not s["went_in"]])
+        else:
+            detail = _median([s["turn_deg"] for s in mine])
         rows.append({"band": band, "episodes": len(mine), "went_in": went, "searched_success": found if searched else None,
-                     "slid_back_mm_median_not_in": slid})
-        print(f"| {band} | {len(mine)} | {went} | {found if searched else '-'} | {'-' if slid is None else f'{slid:.0f}'} |")
+                     "slid_back_mm_median_not_in" if peg else "turn_deg_median": detail})
+        shown = "-" if detail is None else (f"{detail:.0f}" if peg else f"{detail:.1f}")
+        print(f"| {band} | {len(mine)} | {went} | {found if searched else '-'} | {shown} |")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": describe(), "journal": str(args.journal), "searched": str(args.searched or ""),
+            json.dump({"machine": describe(), "task": args.task, "journal": str(args.journal), "searched": str(args.searched or ""),
                        "rows": rows, "stops": stops}, f, indent=2)
 
 

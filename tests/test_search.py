@@ -118,6 +118,24 @@ def test_pushed_straight_the_peg_stops_at_the_face_and_slides_back_in_the_finger
     assert stop["slid_back_mm"] > 30
 
 
+@pytest.mark.sim
+def test_the_charger_starts_its_push_off_the_axis_and_pivots_at_the_face():
+    """benchmarks/insertion_stops.py --task plug_charger on seed 10001 of the 8-task model of results v11:
+    where the push starts, the charger is millimetres across the receptacle's axis (0.5 mm of clearance)
+    and turned; pushed straight it stops at the face and pivots in the fingers."""
+    from benchmarks.insertion_stops import first_insertion, first_insertion_stop
+
+    journal = RESULTS / "v11_h200" / "eight_tasks" / "eval_v11_ins" / "episodes.jsonl"
+    recorded = next(r for line in journal.read_text().splitlines()[1:]
+                    if (r := json.loads(line))["task"] == "plug_charger" and r["seed"] == 10001)
+    assert first_insertion(recorded["steps"]) == 3
+    stop = first_insertion_stop(recorded)
+    assert not stop["went_in"]
+    assert 3 < stop["across_mm"] < 4.5 and stop["turn_deg"] > 4 and stop["offset_mm"][0] < -40   # before the face
+    after = stop["after"]
+    assert after["offset_mm"][0] > -25 and after["turn_deg"] > stop["turn_deg"] + 3             # at it, pivoted
+
+
 def test_an_evaluation_begun_before_the_search_resumes_only_pushed_straight(tmp_path):
     """A journal of an earlier rvt2 has no insertion_search in its plan: it was pushed straight. Resuming
     it with the search is refused in one line, before any episode runs."""
