@@ -11,7 +11,8 @@ in the closed gripper. Then the object is measured against its goal:
   centre in the TCP's frame, before against after);
 - plug_charger: the charger in its goal's frame (x along the receptacle's axis) where the push starts,
   since pushed against the receptacle's face it pivots in the fingers: how far across the axis it is, the
-  larger of its two offsets (0.5 mm of clearance), and its turn from the goal; and the same after the push.
+  larger of its two offsets (0.5 mm of clearance), and its turn from the goal (the table's median is over
+  every episode of a band, those that went in too); and the same after the push.
 Whether it went in is measured for both. With `--searched`, an `rvt2 eval` folder of the same episodes
 with the search (an `rvt2 eval --replay` of the journal, or the same checkpoint evaluated again: up to its
 first insertion an episode is the same), each episode is also marked by whether it succeeded there.
@@ -57,6 +58,8 @@ def first_insertion_stop(record: dict) -> dict:
     from rvt2cli.record.scene import make_env
     from rvt2cli.tasks import get_task
 
+    if record["task"] not in BANDS_MM:
+        raise ValueError(f"insertion_stops measures {', '.join(BANDS_MM)}, not {record['task']}")
     index = first_insertion(record["steps"])
     if index is None:
         return {"seed": record["seed"], "insertion": None}
@@ -69,7 +72,7 @@ def first_insertion_stop(record: dict) -> dict:
             if keyframes_done == index:  # the arm stands where the insertion's push starts
                 if task.name == "insert_peg":
                     before["peg_mm"] = peg_in_hand_mm(env)
-                else:
+                elif task.name == "plug_charger":
                     before.update(charger_at_goal(env))
             return super().next(cloud, gripper_open, finger_positions, keyframes_done, retry)
 
@@ -148,12 +151,12 @@ def main() -> None:
         mine = [s for s in inserted if _band(s["across_mm"], limits) == band]
         went = sum(s["went_in"] for s in mine)
         found = sum(s.get("searched_success", False) for s in mine)
-        if peg:
-            detail = _median([s["slid_back_mm"] for s in mine if not s["went_in"]])
-        else:
-            detail = _median([s["turn_deg"] for s in mine])
+        if peg:  # of the pegs that did not go in
+            detail_key, detail = "slid_back_mm_median_not_in", _median([s["slid_back_mm"] for s in mine if not s["went_in"]])
+        else:    # of every charger in the band
+            detail_key, detail = "turn_deg_median", _median([s["turn_deg"] for s in mine])
         rows.append({"band": band, "episodes": len(mine), "went_in": went, "searched_success": found if searched else None,
-                     "slid_back_mm_median_not_in" if peg else "turn_deg_median": detail})
+                     detail_key: detail})
         shown = "-" if detail is None else (f"{detail:.0f}" if peg else f"{detail:.1f}")
         print(f"| {band} | {len(mine)} | {went} | {found if searched else '-'} | {shown} |")
     if args.json:

@@ -80,6 +80,7 @@ while [ $# -gt 0 ]; do
     elif [ ! -f "$SITE/.unpacked" ]; then
       (cd "$W" && sha256sum -c site.sha256)
       mkdir -p "$SITE" && cat "$W"/site.part.* | xz -d | tar -x -C "$SITE" && touch "$SITE/.unpacked"
+      export RVT2_EMBEDDINGS=$SITE/embeddings.safetensors   # for the phases after this one in this command
     fi
     if [ -d .gl ]; then  # Vulkan and GL loaders (apt-get download, carried): the image may have none
       for f in .gl/*.deb; do dpkg -x "$f" /; done

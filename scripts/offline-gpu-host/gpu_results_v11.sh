@@ -10,7 +10,7 @@
 #
 # On a workstation with rvt2 and its simulator installed: `bash scripts/offline-gpu-host/gpu_results_v11.sh all`
 # (`EPISODES=10 RUN=v11_10` for the 10-demo model).
-# On a GPU machine without network access, held at most 30 minutes: `stash` (x3), `CHAIN=through start`, then
+# On a GPU machine without network access (commands of at most 10 minutes): `stash` (x3), `CHAIN=through start`, then
 # `collect` until the log says the chain is done (26-27 minutes in all on one H200 with 16 cores). As run, the
 # 25-demo model's chain was `start` (record, train, score offline), then `weights 0 4`, `weights 4 4` and
 # `weights 8 4` carried its weights off (float16 pieces; `tar -xf meta.tar` among them, then
@@ -39,13 +39,13 @@ case ${1:-} in
     HELDOUT_TASKS=${HELDOUT_TASKS:-"insert_peg plug_charger"} HELDOUT_EPISODES=${HELDOUT_EPISODES:-10} WORKERS=8 \
       MERGE_DIRS=heldout bash $onebox heldout merged > "$W/heldout.out" 2>&1 &
     heldout=$!
-    DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $TRAIN" bash $onebox train
+    DATA=$W/demos_merged TRAIN_ARGS="$COMPILE $TRAIN" bash $onebox train || { wait "$heldout"; exit 1; }
     wait "$heldout" || echo "recording the held-out demos failed: $W/heldout.out"
     OFFLINE_DEMOS=$W/heldout_merged bash $onebox offline || echo "scoring $RUN offline failed" ;;
   collect)
     WAIT_S=${WAIT_S:-540} bash $onebox wait chain || true
     RUNS=$RUNS bash $onebox results ;;
-  weights) bash $onebox weights "$2" "$3" ;;
+  weights) bash $onebox weights "${2:?weights FIRST COUNT}" "${3:?weights FIRST COUNT}" ;;
   evaluate) bash $onebox stash setup restore bg eval "$self" evalchain ;;  # machine 2: the weights carried in
   evalchain)
     EVAL_NAME=${RUN}_ins EVAL_ARGS="--tasks $INSERTIONS" bash $onebox eval || echo "evaluating $RUN on $INSERTIONS failed"
@@ -55,5 +55,5 @@ case ${1:-} in
     RUNS=$RUNS bash $onebox results ;;
   through) bash "$self" chain && bash "$self" evalchain ;;  # one machine: CHAIN=through for `start`
   all) bash $onebox setup && bash "$self" chain && bash "$self" evalchain && RUNS=$RUNS bash $onebox results ;;
-  *) echo "usage: $0 stash|start|collect|weights FIRST COUNT|evaluate|collect-eval|all" >&2; exit 2 ;;
+  *) echo "usage: $0 stash|start|chain|collect|weights FIRST COUNT|evaluate|evalchain|collect-eval|through|all" >&2; exit 2 ;;
 esac
