@@ -11,17 +11,18 @@ executor) with its keyframes degraded the way a policy's predictions are, on the
 
     python -m benchmarks.precision_budget [--tasks insert_peg,plug_charger] [--variants exact,rot72,rot360,pos2]
                                           [--seeds 20] [--first-seed 10000] [--workers 2] [--json out.json]
-                                          [--no-insertion-search]
+                                          [--no-insertion-search] [--search-pitch MM] [--search-retract MM]
 
 Per task and variant: success (Wilson 95% interval) and, for insertion tasks, the median closest gap to
 success of the failed episodes. Every episode is `rvt2cli.eval.rollout.run_episode`, the loop `rvt2 eval`
-runs.
+runs. `--search-pitch` / `--search-retract` run the insertion search with another grid than the tasks'
+tasks/*.toml give (`search_pitch_mm`, `search_retract_mm`), to compare grids on seeds no policy is scored on.
 """
 
 import argparse
 import json
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -84,13 +85,13 @@ class DegradedOracle(OracleSource):
 _envs: dict = {}
 
 
-def _episode(job: tuple[str, str, int]) -> dict:
+def _episode(job: tuple[str, str, int, bool, dict]) -> dict:
     from rvt2cli.eval.rollout import run_episode
     from rvt2cli.record.scene import make_env
     from rvt2cli.tasks import get_task
 
-    variant, task_name, seed, search = job
-    task = get_task(task_name)
+    variant, task_name, seed, search, grid = job
+    task = replace(get_task(task_name), **grid)
     env = _envs.setdefault(task_name, make_env(task))
     outcome = run_episode(env, task, seed, DegradedOracle(env, Degradation.parse(variant)), task.instruction(seed)[0],
                           step_budget=2 * task.max_steps, search=search)
@@ -109,12 +110,20 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--no-insertion-search", dest="search", action="store_false",
                         help="push insertions straight, without the executor's search for the hole")
+    parser.add_argument("--search-pitch", type=float, metavar="MM",
+                        help="the insertion search's grid pitch for every task in --tasks (default: tasks/*.toml's)")
+    parser.add_argument("--search-retract", type=float, metavar="MM",
+                        help="how far each probe backs off the face (default: tasks/*.toml's)")
     parser.add_argument("--json", help="write results here")
     args = parser.parse_args()
+    grid = {k: v for k, v in (("search_pitch_mm", args.search_pitch), ("search_retract_mm", args.search_retract))
+            if v is not None}
+    if any(v <= 0 for v in grid.values()):
+        raise SystemExit("precision_budget: --search-pitch and --search-retract must be > 0 (mm)")
     tasks, variants = args.tasks.split(","), args.variants.split(",")
     for v in variants:
         Degradation.parse(v)
-    jobs = [(v, t, args.first_seed + i, args.search) for t in tasks for v in variants for i in range(args.seeds)]
+    jobs = [(v, t, args.first_seed + i, args.search, grid) for t in tasks for v in variants for i in range(args.seeds)]
     with ProcessPoolExecutor(args.workers) as pool:
         episodes = list(pool.map(_episode, jobs))
     rows = []
@@ -132,7 +141,8 @@ def main() -> None:
                   f"{'-' if gap is None else f'{gap:.1f}'} |", flush=True)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": describe(), "first_seed": args.first_seed, "insertion_search": args.search, "rows": rows,
+            json.dump({"machine": describe(), "first_seed": args.first_seed, "insertion_search": args.search,
+                       "search_grid_mm": grid, "rows": rows,
                        "episodes": episodes}, f, indent=2)
 
 

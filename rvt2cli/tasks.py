@@ -38,6 +38,7 @@ class Task:
     insertion: bool = False            # the point is fitting a held object into a close fit (failure reasons say how short)
     aim_offset: tuple[float, ...] = TCP_AIM  # m, TCP frame: what the policy aims once it holds (rvt2 train --aim-held)
     search_pitch_mm: float = 0.0       # > 0: an insertion stopped at a face searches for the hole on this grid (rvt2cli.eval.search)
+    search_retract_mm: float = 4.0     # ...each probe backing off this far from the face before it shifts
     env_kwargs: dict = field(default_factory=dict)
 
     def instruction(self, seed: int) -> tuple[str, int]:
@@ -73,6 +74,8 @@ def _parse(text: str, source: str) -> Task:
         raise UserError(f"{source}: aim_offset needs 3 numbers (x y z in metres, in the TCP frame)")
     if not isinstance(task.search_pitch_mm, (int, float)) or task.search_pitch_mm < 0:
         raise UserError(f"{source}: search_pitch_mm must be a number >= 0 (mm; 0: no insertion search)")
+    if not isinstance(task.search_retract_mm, (int, float)) or task.search_retract_mm <= 0:
+        raise UserError(f"{source}: search_retract_mm must be a number > 0 (mm a probe backs off the face)")
     try:
         task.all_instructions()
     except KeyError as e:

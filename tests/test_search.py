@@ -10,7 +10,7 @@ import pytest
 
 from rvt2cli.errors import UserError
 from rvt2cli.eval.options import EvalOptions
-from rvt2cli.eval.search import MAX_PROBES, InsertionSearch, across
+from rvt2cli.eval.search import MAX_PROBES, RETRACT_M, InsertionSearch, across
 from rvt2cli.tasks import _parse, get_task
 
 RESULTS = Path(__file__).resolve().parent.parent / "benchmarks" / "results"
@@ -52,6 +52,11 @@ def test_a_task_gives_its_search_pitch_or_none():
     base = 'name = "t"\nenv_id = "PegInsertionSide-v1"\nexpert = "m:f"\ninstructions = ["x"]\nmax_steps = 10\n'
     with pytest.raises(UserError, match="search_pitch_mm must be a number >= 0"):
         _parse(base + "search_pitch_mm = -1\n", "tasks/t.toml")
+    # each probe backs off the task's retract (4 mm unless the task gives one)
+    assert InsertionSearch.for_task(get_task("insert_peg")).retract_m == pytest.approx(RETRACT_M)
+    assert _parse(base + "search_pitch_mm = 1\nsearch_retract_mm = 1.5\n", "tasks/t.toml").search_retract_mm == 1.5
+    with pytest.raises(UserError, match="search_retract_mm must be a number > 0"):
+        _parse(base + "search_pitch_mm = 1\nsearch_retract_mm = 0\n", "tasks/t.toml")
 
 
 @pytest.mark.sim
@@ -134,6 +139,29 @@ def test_the_charger_starts_its_push_off_the_axis_and_pivots_at_the_face():
     assert 3 < stop["across_mm"] < 4.5 and stop["turn_deg"] > 4 and stop["offset_mm"][0] < -40   # before the face
     after = stop["after"]
     assert after["offset_mm"][0] > -25 and after["turn_deg"] > stop["turn_deg"] + 3             # at it, pivoted
+
+
+@pytest.mark.sim
+def test_the_chargers_wider_grid_reaches_a_receptacle_the_v11_grid_could_not(tmp_path):
+    """Seed 10012 of the 8-task model of results v11, recorded with plug_charger's 0.5 mm grid and 4 mm
+    retract: its 37 probes, all within 1.8 mm of the keyframe's line, found nothing before the control steps
+    ran out. Its keyframes through today's grid (1 mm, 1.5 mm retract): a probe further out goes in."""
+    from rvt2cli.eval.runner import evaluate
+
+    journal = RESULTS / "v11_h200" / "eight_tasks" / "eval_v11_ins" / "episodes.jsonl"
+    recorded = next(r for line in journal.read_text().splitlines()[1:]
+                    if (r := json.loads(line))["task"] == "plug_charger" and r["seed"] == 10012)
+    old_reach = 1000 * np.hypot(*InsertionSearch(0.0005).offsets().T).max()
+    assert not recorded["success"] and recorded["failure"] == "budget_exhausted"
+    assert recorded["steps"][-1]["probes"] > 30 and old_reach < 2
+    result = evaluate(EvalOptions(checkpoint=None, replay=str(journal), tasks=("plug_charger",), episodes=1, seed=10012,
+                                  out=str(tmp_path)))
+    (record,) = result.report["episodes"]
+    assert record["success"]
+    insertion = record["steps"][-1]
+    assert insertion["probes"] >= 1 and insertion["search_offset_mm"] > old_reach
+    assert result.report["search_grids"] == {"plug_charger": {"pitch_mm": 1.0, "retract_mm": 1.5}}
+    assert "grid 1 mm, retract 1.5 mm" in (tmp_path / "eval.md").read_text()
 
 
 def test_an_evaluation_begun_before_the_search_resumes_only_pushed_straight(tmp_path):

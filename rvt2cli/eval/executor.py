@@ -45,7 +45,7 @@ from scipy.spatial.transform import Rotation
 from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.eval.robot_geometry import RobotGeometry
 from rvt2cli.eval.search import (BLOCKED_M, CONTACT_LAG_M, CONTACT_SPEED_SHARE, ENTERED_M, INSIDE_M, PROBE_M,
-                                 RETRACT_M, InsertionSearch, across)
+                                 InsertionSearch, across)
 from rvt2cli.record.scene import tcp_pose
 from rvt2cli.robot import RobotFacts, planner_description
 
@@ -353,7 +353,7 @@ class Executor:
         plane = across(direction)
         for self.probes, (a, b) in enumerate(self.search.offsets(), start=1):
             shifted = line + a * plane[0] + b * plane[1]
-            back = _moved(target, shifted - (depth + RETRACT_M) * direction)
+            back = _moved(target, shifted - (depth + self.search.retract_m) * direction)
             retreat = self._screw(back, use_point_cloud=False)
             if retreat is None:
                 continue

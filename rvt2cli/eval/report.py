@@ -163,8 +163,11 @@ def markdown(report: dict) -> str:
                                                    for s, r in per.items() if "successes_within_task_steps" in r)
                            for task, per in report["tasks"].items())
         lines += ["", f"Successes within each task's own max_steps (a budget of 1 x): {within}."]
+    grids = report.get("search_grids") or {}
     searches = [f"{task} {s}: {r['insertion_search']['found']} of {r['insertion_search']['searched']} "
-                f"({r['insertion_search']['probes']} probes)"
+                f"({r['insertion_search']['probes']} probes"
+                + (f"; grid {grids[task]['pitch_mm']:g} mm, retract {grids[task]['retract_mm']:g} mm" if task in grids else "")
+                + ")"
                 for task, per in report["tasks"].items() for s, r in per.items() if r.get("insertion_search", {}).get("searched")]
     if report.get("insertion_search") is False:
         lines += ["", "Insertion search off (--no-insertion-search): insertions were pushed straight to their keyframes."]

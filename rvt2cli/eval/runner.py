@@ -149,6 +149,12 @@ def untrained_tasks(opts: EvalOptions, checkpoint_tasks: list[str]) -> list[str]
     return [t for t in opts.tasks if t not in checkpoint_tasks]
 
 
+def search_grids(task_names) -> dict:
+    """{task: its insertion search's grid pitch and probe retract, mm} for the tasks that search."""
+    return {name: {"pitch_mm": task.search_pitch_mm, "retract_mm": task.search_retract_mm}
+            for name in task_names if (task := get_task(name)).search_pitch_mm > 0}
+
+
 def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     """Run every job not yet in the journal; `on_start(number_of_episodes)` once the inputs are checked,
     `on_outcome(job, outcome, finished)` after each episode (the CLI's progress bar)."""
@@ -200,6 +206,7 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
         meta = {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
                 "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
                 "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
+                "search_grids": search_grids(sorted({job.task for job in jobs})) if opts.insertion_search else {},
                 "untrained_tasks": untrained, "seconds": time.perf_counter() - start}
         result = build_report(journal.records, meta)
         write_report(result, out_dir)
