@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from rvt2cli.errors import UserError
+from rvt2cli.eval.journal import read_journal
 from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.search import MAX_PROBES, RETRACT_M, InsertionSearch, across
 from rvt2cli.tasks import _parse, get_task
@@ -16,10 +17,13 @@ from rvt2cli.tasks import _parse, get_task
 RESULTS = Path(__file__).resolve().parent.parent / "benchmarks" / "results"
 # 50 insert_peg episodes of a one-task policy (results v8), recorded on a GPU machine without the search
 V8_PEG = RESULTS / "v8_h200" / "insert_peg_only" / "eval_v8_peg" / "episodes.jsonl"
+# the two insertions of the 8-task model of results v11, recorded on a GPU machine with v11's search grids
+V11_INSERTIONS = RESULTS / "v11_h200" / "eight_tasks" / "eval_v11_ins" / "episodes.jsonl"
 
 
-def _recorded(seed: int) -> dict:
-    return next(r for line in V8_PEG.read_text().splitlines()[1:] if (r := json.loads(line))["seed"] == seed)
+def _recorded(seed: int, journal: Path = V8_PEG, task: str = "insert_peg") -> dict:
+    """The recorded episode of `task` with this seed in an evaluation journal."""
+    return next(r for r in read_journal(journal)[1] if r["task"] == task and r["seed"] == seed)
 
 
 def _replay(seed: int, out: Path, search: bool = True, step_budget_scale: float = 2.0):
@@ -130,9 +134,7 @@ def test_the_charger_starts_its_push_off_the_axis_and_pivots_at_the_face():
     and turned; pushed straight it stops at the face and pivots in the fingers."""
     from benchmarks.insertion_stops import first_insertion, first_insertion_stop
 
-    journal = RESULTS / "v11_h200" / "eight_tasks" / "eval_v11_ins" / "episodes.jsonl"
-    recorded = next(r for line in journal.read_text().splitlines()[1:]
-                    if (r := json.loads(line))["task"] == "plug_charger" and r["seed"] == 10001)
+    recorded = _recorded(10001, V11_INSERTIONS, "plug_charger")
     assert first_insertion(recorded["steps"]) == 3
     stop = first_insertion_stop(recorded)
     assert not stop["went_in"]
@@ -148,13 +150,11 @@ def test_the_chargers_wider_grid_reaches_a_receptacle_the_v11_grid_could_not(tmp
     ran out. Its keyframes through today's grid (1 mm, 1.5 mm retract): a probe further out goes in."""
     from rvt2cli.eval.runner import evaluate
 
-    journal = RESULTS / "v11_h200" / "eight_tasks" / "eval_v11_ins" / "episodes.jsonl"
-    recorded = next(r for line in journal.read_text().splitlines()[1:]
-                    if (r := json.loads(line))["task"] == "plug_charger" and r["seed"] == 10012)
+    recorded = _recorded(10012, V11_INSERTIONS, "plug_charger")
     old_reach = 1000 * np.hypot(*InsertionSearch(0.0005).offsets().T).max()
     assert not recorded["success"] and recorded["failure"] == "budget_exhausted"
     assert recorded["steps"][-1]["probes"] > 30 and old_reach < 2
-    result = evaluate(EvalOptions(checkpoint=None, replay=str(journal), tasks=("plug_charger",), episodes=1, seed=10012,
+    result = evaluate(EvalOptions(checkpoint=None, replay=str(V11_INSERTIONS), tasks=("plug_charger",), episodes=1, seed=10012,
                                   out=str(tmp_path)))
     (record,) = result.report["episodes"]
     assert record["success"]
