@@ -9,7 +9,7 @@ import torch
 from rvt2cli.model.action_head import ActionHead
 from rvt2cli.model.config import RVT, RVT2, SMALL
 from rvt2cli.model.heatmap import ConvexUpsampleHeatmap, TransposedConvHeatmap
-from rvt2cli.model.locate import gaussian_targets, heatmaps_to_point
+from rvt2cli.model.locate import gaussian_targets, heatmaps_to_point, window_voxels
 from rvt2cli.model.loss import policy_loss
 from rvt2cli.model.mvt import MultiViewTransformer
 from rvt2cli.model.policy import Observation, RVT2Policy
@@ -95,6 +95,44 @@ def test_heatmaps_to_point_recovers_a_planted_point_exactly(views, zoomed):
     heat = gaussian_targets(planted, cameras, size, sigma=1.5)
     found = heatmaps_to_point(heat, views, center, half, chunk=5)
     assert torch.allclose(found, planted, atol=1e-6)
+
+
+def test_heatmaps_to_point_looks_only_within_its_window():
+    """A sharp peak on the box's face (where stage 2's heatmaps of a 10-demo model put a push's start,
+    10 cm below the table) loses to a weaker one near the centre once the window leaves the face out."""
+    size, views = 56, RVT2.views
+    center = torch.tensor([[0.1, -0.2, 0.3]])
+    cameras = zoom_rig(center, zoom=4.0, views=views, image_size=size)
+    voxel = lambda ijk: center + (-1 + (torch.tensor([ijk]) + 0.5) * 2 / size) * 0.25  # noqa: E731
+    face, near = voxel([33, 25, 0]), voxel([33, 25, 30])  # one column of the scene: only z differs
+    heat = 0.7 * gaussian_targets(face, cameras, size, sigma=1.0) + 0.3 * gaussian_targets(near, cameras, size, sigma=1.5)
+    assert torch.allclose(heatmaps_to_point(heat, views, center, 0.25), face, atol=1e-6)
+    assert torch.allclose(heatmaps_to_point(heat, views, center, 0.25, chunk=3, window=0.5), near, atol=1e-6)
+
+
+def test_window_voxels_are_centred_and_never_empty():
+    assert window_voxels(224, 1.0) == (0, 224)
+    assert window_voxels(224, 0.5) == (56, 168)   # voxel centres within +-0.496 of the box's half extent
+    assert window_voxels(64, 0.01) == (31, 33)
+    with pytest.raises(ValueError, match="window"):
+        window_voxels(224, 0.0)
+
+
+def test_stage_2_finds_its_point_within_the_window_of_stage_1s():
+    torch.manual_seed(0)
+    cfg = replace(SMALL, stage2_window=0.25)
+    pred = RVT2Policy(cfg).predict(observation(cfg, batch=2))
+    reach = cfg.search_window() / cfg.zoom  # cube units
+    assert ((pred.position - pred.stage1_position).abs() <= reach + 1e-6).all()
+    with pytest.raises(ValueError, match="stage2_window"):
+        replace(SMALL, stage2_window=1.5).validate()
+
+
+def test_stage_2s_window_is_where_training_puts_its_targets():
+    # U(-5, 5) cm around the target (stage2_noise) in a box of +-10 cm (zoom 4 of the 0.8 m scene cube)
+    assert RVT2.search_window() == pytest.approx(0.5)
+    assert replace(RVT2, zoom=2.0).search_window() == pytest.approx(0.25)   # `rvt2 train --zoom 2`: +-20 cm
+    assert replace(RVT2, stage2_window=1.0).search_window() == 1.0         # the paper: the whole box
 
 
 def test_gaussian_targets_peak_at_the_projection():

@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from rvt2cli.model.observation import LANG_DIM, PROPRIO_DIM
 from rvt2cli.render.cameras import RVT1_VIEWS, RVT2_VIEWS
+from rvt2cli.tasks import DEFAULT_SCENE_BOUNDS
 
 
 @dataclass(frozen=True)
@@ -44,11 +45,26 @@ class ModelConfig:
     splat_radius: float = 0.012        # cube units (the cube spans 2): ~1.3 px at 224 px
     heatmap_sigma: float = 1.5         # px, Gaussian heatmap target
     stage2_noise: float = 0.05         # m, training: stage 2 is centred on the target plus U(-noise, noise)
+    # Inference: stage 2's argmax looks only this far from its centre (a fraction of its box's half
+    # extent). None: as far as training puts stage 2's targets, +-stage2_noise (`search_window`): +-5 cm
+    # of the +-10 cm box in the default 0.8 m scene cube. A peak beyond that is one the network was never
+    # taught, and with few demos it can sit on the box's faces (a push's start 10 cm below the table).
+    # 1.0: the whole box (the paper).
+    stage2_window: float | None = None
     attention_dropout: float = 0.0
 
     @property
     def tokens_per_side(self) -> int:
         return self.image_size // self.patch_size
+
+    def search_window(self) -> float:
+        """Stage 2's argmax window, a fraction of its box's half extent (see `stage2_window`)."""
+        if self.stage2_window is not None:
+            return self.stage2_window
+        if self.stage2_noise <= 0:
+            return 1.0
+        half_m = (DEFAULT_SCENE_BOUNDS[3] - DEFAULT_SCENE_BOUNDS[0]) / 2  # metres per cube unit
+        return min(1.0, self.stage2_noise * self.zoom / half_m)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -72,6 +88,8 @@ class ModelConfig:
             raise ValueError("within_view_layers must be between 0 and depth")
         if self.stages not in (1, 2):
             raise ValueError("stages must be 1 or 2")
+        if self.stage2_window is not None and not 0 < self.stage2_window <= 1:
+            raise ValueError("stage2_window must be in (0, 1]: a fraction of stage 2's box")
         if self.rotation_sigma_deg < 0:
             raise ValueError("rotation_sigma_deg must be 0 (one-bin targets) or positive")
 

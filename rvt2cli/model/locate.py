@@ -58,30 +58,42 @@ def _voxel_table(prob: torch.Tensor, axes: ViewAxes) -> tuple[tuple[int, int], t
 SLAB_ELEMENTS = 2**26  # scores held at once (256 MB in float32): one slab for a single 224-px sample
 
 
+def window_voxels(w: int, window: float) -> tuple[int, int]:
+    """The voxel indices [lo, hi) along an axis of W voxels whose centres lie within +-`window` of the
+    box's centre (box units: the box spans [-1, 1]); at least the two central voxels."""
+    if not 0.0 < window <= 1.0:
+        raise ValueError(f"window {window} must be in (0, 1]")
+    half = max(1, round(window * w / 2))
+    return max(0, w // 2 - half), min(w, w - w // 2 + half)
+
+
 def heatmaps_to_point(probs: torch.Tensor, views, box_center: torch.Tensor, box_half: float,
-                      chunk: int | None = None) -> torch.Tensor:
+                      chunk: int | None = None, window: float = 1.0) -> torch.Tensor:
     """probs [B, V, W, W] (each view sums to 1) of the named axis-aligned orthographic views (a cube or
     zoom rig) -> [B, 3] voxel centre with the best mean score, in cube coordinates; the views cover
-    the box `box_center` +- `box_half`."""
+    the box `box_center` +- `box_half`. Only voxels within +-`window` of the box's centre (box units)
+    are candidates."""
     b, v, h, w = probs.shape
     if h != w:
         raise ValueError("3D argmax needs square views")
+    lo, hi = window_voxels(int(w), window)  # int: a traced size is a tensor; the views' size is static
     tables = {pair: probs.new_zeros(b, w, w) for pair in _PAIRS}
     for view, axes in enumerate(view_axes(views)):
         pair, table = _voxel_table(probs[:, view], axes)
         tables[pair] = tables[pair] + table
-    a_xy, a_xz, a_yz = tables[(0, 1)], tables[(0, 2)], tables[(1, 2)]
-    chunk = chunk or max(1, min(w, SLAB_ELEMENTS // (b * w * w)))  # few, large slabs: few kernel launches
+    a_xy, a_xz, a_yz = (tables[pair][:, lo:hi, lo:hi] for pair in _PAIRS)
+    n = hi - lo
+    chunk = chunk or max(1, min(n, SLAB_ELEMENTS // (b * n * n)))  # few, large slabs: few kernel launches
     best_score = probs.new_full((b,), -1.0)
     best_index = torch.zeros(b, dtype=torch.long, device=probs.device)
-    for start in range(0, w, chunk):
-        stop = min(start + chunk, w)
-        slab = a_xy[:, start:stop, :, None] + a_xz[:, start:stop, None, :] + a_yz[:, None, :, :]  # [B, c, W, W]
+    for start in range(0, n, chunk):
+        stop = min(start + chunk, n)
+        slab = a_xy[:, start:stop, :, None] + a_xz[:, start:stop, None, :] + a_yz[:, None, :, :]  # [B, c, n, n]
         score, index = slab.flatten(1).max(dim=1)
         better = score > best_score
         best_score = torch.where(better, score, best_score)
-        best_index = torch.where(better, index + start * w * w, best_index)
-    ijk = torch.stack([best_index // (w * w), (best_index // w) % w, best_index % w], dim=1)
+        best_index = torch.where(better, index + start * n * n, best_index)
+    ijk = torch.stack([best_index // (n * n), (best_index // n) % n, best_index % n], dim=1) + lo
     voxel = -1.0 + (ijk.to(probs.dtype) + 0.5) * (2.0 / w)
     return box_center + voxel * box_half
 

@@ -102,7 +102,7 @@ class RVT2Policy(nn.Module):
     def locate(self, stage: int, out: StageOutput, center: torch.Tensor | None) -> torch.Tensor:
         probs = out.logits.float().flatten(-2).softmax(-1).view_as(out.logits)
         box_center, half = self.box(stage, center, probs)
-        return heatmaps_to_point(probs, self.cfg.views, box_center, half)
+        return heatmaps_to_point(probs, self.cfg.views, box_center, half, window=self.cfg.search_window() if stage else 1.0)
 
     def action_features(self, outputs: list[StageOutput], location: torch.Tensor) -> torch.Tensor:
         """What the action head reads at `location`: the last stage's features, and stage 1's before

@@ -20,7 +20,8 @@
 # Online:  tar -xf meta.tar in the pieces' folder; python $K/gpu_checkpoint.py restore PIECES_DIR runs/NAME
 # Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
 # "--compile --seed 1", "--episodes-per-task 10 --cameras front"), DATA (the demos RUN trains on),
-# OFFLINE_DEMOS (the held-out demos RUN is scored on), EVAL_EPISODES, EVAL_ARGS and EVAL_NAME (eval's options
+# OFFLINE_DEMOS (the held-out demos RUN is scored on), PIECES and WEIGHTS (carried weight pieces, and where
+# stash keeps them for restore: two runs' pieces kept apart), EVAL_EPISODES, EVAL_ARGS and EVAL_NAME (eval's options
 # and report name), WORKERS, RUNS (results), EXTRA_PYTHONPATH (a folder searched first, e.g. a sitecustomize.py).
 # gpu_results_v2.sh, gpu_results_v2_1gpu.sh and gpu_results_v3.sh hold the exact commands behind docs/RESULTS.md.
 set -euo pipefail
@@ -37,6 +38,8 @@ STEPS=${STEPS:-1100}
 NPROC=${NPROC:-1}
 EVAL_EPISODES=${EVAL_EPISODES:-50}
 RUNS=${RUNS:-$RUN}
+PIECES=${PIECES:-.gpu/weights}     # a run's carried weight pieces: the folders $PIECES*/
+WEIGHTS=${WEIGHTS:-$W/weights}     # where stash keeps them and restore reads them
 HELDOUT=${HELDOUT:-data/heldout}   # held-out demos (recorded here with seeds the training never saw), carried in
 CONFIG=${CONFIG:-rvt2}
 DEVICE=${DEVICE:-cuda}
@@ -66,9 +69,9 @@ while [ $# -gt 0 ]; do
   case $step in
   stash)
     cp .gpu/site.part.* .gpu/site.sha256 "$W/" 2>/dev/null || true
-    # a run's weight pieces (`weights` on another machine, then `tar -xf meta.tar`), carried as .gpu/weights*/
-    for d in .gpu/weights*/; do
-      if [ -d "$d" ]; then mkdir -p "$W/weights" && cp "$d"* "$W/weights/"; fi
+    # a run's weight pieces (`weights` on another machine, then `tar -xf meta.tar`), carried as $PIECES*/
+    for d in "$PIECES"*/; do
+      if [ -d "$d" ]; then mkdir -p "$WEIGHTS" && cp "$d"* "$WEIGHTS/"; fi
     done
     if [ -d "$HELDOUT" ]; then mkdir -p "$W/heldout" && cp "$HELDOUT"/* "$W/heldout/"; fi
     ls -l "$W"
@@ -119,8 +122,8 @@ while [ $# -gt 0 ]; do
     done
     phase merged $(( $(clock) - t ))
     ;;
-  restore)  # RUN's weights from the pieces stash kept in $W/weights (another machine trained it)
-    python3 $KIT/gpu_checkpoint.py restore "$W/weights" "$W/runs/$RUN"
+  restore)  # RUN's weights from the pieces stash kept in $WEIGHTS (another machine trained it)
+    python3 $KIT/gpu_checkpoint.py restore "$WEIGHTS" "$W/runs/$RUN"
     ;;
   oracle)  # the executor's ceiling on the evaluation seeds: the expert's keyframes, closed loop
     t=$(clock)
