@@ -8,6 +8,10 @@
 # restored by `gpu_onebox.sh restore`.
 # `baseline` evaluates both again as before, with the whole box searched (stage2_window = 1.0, set in a copy of
 # each run, `${RUN}_full`): the same machine, the same seeds (eval_v13_full_10, eval_v13_full).
+# `cpugpu` asks why the 10-demo model acts differently on a CPU-only machine: its whole-box run on push_cube
+# and pull_cube with TF32 off in cuBLAS and cuDNN (NVIDIA_TF32_OVERRIDE=0; eval_v13_full_10_notf32), as it
+# was (eval_v13_full_10_again: the same episodes?), and with the policy on this machine's CPU while the
+# simulator renders on its GPU (eval_v13_full_10_cpupolicy).
 # On a workstation with rvt2 and its simulator installed and both runs in $W/runs/:
 #   bash scripts/offline-gpu-host/gpu_results_v13.sh all
 # On a GPU machine without network access (64 MiB carried per command), as run: `stash` once per carry,
@@ -49,11 +53,17 @@ case ${1:-} in
   basechain)
     RUN=${TEN}_full EVAL_NAME=v13_full_10 bash $onebox eval || echo "evaluating ${TEN}_full failed"
     RUN=${TWENTYFIVE}_full EVAL_NAME=v13_full bash $onebox eval || echo "evaluating ${TWENTYFIVE}_full failed" ;;
+  cpugpu)  # after the 10-demo run's stash, setup and restore
+    full_box "$TEN"
+    pushpull="--tasks push_cube,pull_cube"
+    NVIDIA_TF32_OVERRIDE=0 RUN=${TEN}_full EVAL_NAME=v13_full_10_notf32 EVAL_ARGS=$pushpull bash $onebox eval
+    RUN=${TEN}_full EVAL_NAME=v13_full_10_again EVAL_ARGS=$pushpull bash $onebox eval
+    DEVICE=cpu RUN=${TEN}_full EVAL_NAME=v13_full_10_cpupolicy EVAL_ARGS=$pushpull bash $onebox eval ;;
   collect)
     WAIT_S=${WAIT_S:-540} bash $onebox wait ${WAIT_FOR:-eval} || true
     RUNS=$RUNS bash $onebox results ;;
   all)
     bash $onebox setup && bash "$self" evalchain && full_box "$TEN" && full_box "$TWENTYFIVE" && bash "$self" basechain
     RUNS=$RUNS bash $onebox results ;;
-  *) echo "usage: $0 stash|evaluate|evalchain|baseline|basechain|collect|all" >&2; exit 2 ;;
+  *) echo "usage: $0 stash|evaluate|evalchain|baseline|basechain|cpugpu|collect|all" >&2; exit 2 ;;
 esac
