@@ -152,6 +152,25 @@ def test_an_episode_depends_on_its_seed_not_on_the_episodes_before_it():
     assert runs[0].shape == runs[1].shape and np.array_equal(runs[0], runs[1])
 
 
+def test_lavapipe_renders_on_the_cpu_device(monkeypatch):
+    """Forced to lavapipe (a CPU device), the simulator does not ask SAPIEN for a CUDA render device,
+    which lavapipe lacks where CUDA exists (there every episode failed; without CUDA, SAPIEN fell back
+    to the CPU device by itself)."""
+    from rvt2cli.record.scene import make_env
+    from rvt2cli.tasks import get_task
+
+    monkeypatch.setenv("RVT2_VULKAN", "lavapipe")
+    monkeypatch.delenv("RVT2_VULKAN_CHOSEN", raising=False)
+    env = make_env(get_task("push_cube"), cameras=("front",), image_size=32)
+    try:
+        assert env.unwrapped.backend.render_backend == "sapien_cpu"
+        env.reset(seed=0)
+        image = np.asarray(env.render()[0].cpu().numpy())
+        assert image.ndim == 3 and image.shape[-1] == 3 and image.std() > 0   # a picture of the scene, not a blank
+    finally:
+        env.close()
+
+
 def test_own_insert_peg_expert_succeeds_where_maniskills_does_not():
     """ManiSkill's expert inserts towards a pose computed before the grasp, slanted against the hole by
     however the peg sits in the hand, with screw motions that leave the straight line by millimetres,

@@ -23,7 +23,7 @@ NEAR_M = 0.005  # m: a body this close to the robot is "near" it (the motion pla
 
 def make_env(task: Task, cameras=None, image_size: int | None = None):
     """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras."""
-    use_vulkan_driver()
+    driver = use_vulkan_driver()
     import mani_skill.envs  # noqa: F401 - registers the environments
     from mani_skill.utils.logging_utils import logger as mani_skill_logger
 
@@ -60,8 +60,11 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
     # solver state from one episode into the next, so an episode would depend on the episodes its process
     # ran before (which worker, in which order), not on its seed alone.
     kwargs = {"reconfiguration_freq": 1, **task.env_kwargs}
+    # lavapipe is a CPU device: ManiSkill's default asks SAPIEN for a CUDA one, which lavapipe lacks on a
+    # machine that has CUDA (there, "Failed to find a supported physical device")
+    render = "cpu" if driver.name == "lavapipe" else "gpu"
     env = RVT2Scene(obs_mode="none", control_mode="pd_joint_pos", reward_mode="none", sim_backend="cpu",
-                    render_mode="rgb_array", **kwargs)
+                    render_backend=render, render_mode="rgb_array", **kwargs)
     env.rvt2_cameras = camera_names
     return env
 

@@ -11,7 +11,10 @@
 # `cpugpu` asks why the 10-demo model acts differently on a CPU-only machine: its whole-box run on push_cube
 # and pull_cube with TF32 off in cuBLAS and cuDNN (NVIDIA_TF32_OVERRIDE=0; eval_v13_full_10_notf32), as it
 # was (eval_v13_full_10_again: the same episodes?), and with the policy on this machine's CPU while the
-# simulator renders on its GPU (eval_v13_full_10_cpupolicy).
+# simulator renders on its GPU (eval_v13_full_10_cpupolicy). `lavapipe` runs it once more with the policy on
+# the GPU and the simulator's cameras rendered by Mesa's lavapipe, as on a machine without a GPU
+# (eval_v13_full_10_lavapipe); `packlvp`, on a Debian 12 machine where `make setup` installed lavapipe,
+# packs it with the libraries it needs that a GPU image may lack into .gpu/lvp.tar.xz (42 MB) to carry.
 # On a workstation with rvt2 and its simulator installed and both runs in $W/runs/:
 #   bash scripts/offline-gpu-host/gpu_results_v13.sh all
 # On a GPU machine without network access (64 MiB carried per command), as run: `stash` once per carry,
@@ -59,11 +62,29 @@ case ${1:-} in
     NVIDIA_TF32_OVERRIDE=0 RUN=${TEN}_full EVAL_NAME=v13_full_10_notf32 EVAL_ARGS=$pushpull bash $onebox eval
     RUN=${TEN}_full EVAL_NAME=v13_full_10_again EVAL_ARGS=$pushpull bash $onebox eval
     DEVICE=cpu RUN=${TEN}_full EVAL_NAME=v13_full_10_cpupolicy EVAL_ARGS=$pushpull bash $onebox eval ;;
+  packlvp)  # here, on the development machine
+    rm -rf /tmp/lvp && mkdir -p /tmp/lvp/lib
+    lvp=/usr/lib/x86_64-linux-gnu/libvulkan_lvp.so
+    cp -L "$lvp" /tmp/lvp/lib/
+    # its libraries, less those every Python image has (a second copy of those would shadow the image's own)
+    ldd "$lvp" | awk '{print $3}' | grep '^/' \
+      | grep -v -E '/(libc|libm|libpthread|libdl|librt|ld-linux|libgcc_s|libstdc\+\+|liblzma|libz|libzstd|libexpat|libffi|libbsd|libmd|libtinfo)\.so' \
+      | xargs -I{} cp -L {} /tmp/lvp/lib/
+    python3 -c "import json; json.dump({'file_format_version': '1.0.0', 'ICD': {'api_version': '1.3.0', 'library_path': '/tmp/lvp/lib/libvulkan_lvp.so'}}, open('/tmp/lvp/lvp_icd.json', 'w'))"
+    mkdir -p .gpu && tar -C /tmp -cf - lvp | xz -T0 -6 > .gpu/lvp.tar.xz && ls -l .gpu/lvp.tar.xz ;;
+  lavapipe)  # after the 10-demo run's stash, setup and restore, carrying .gpu/lvp.tar.xz
+    full_box "$TEN"
+    rm -rf /tmp/lvp && tar -xJf .gpu/lvp.tar.xz -C /tmp
+    mkdir -p /usr/share/vulkan/icd.d && cp /tmp/lvp/lvp_icd.json /usr/share/vulkan/icd.d/lvp_icd.json
+    export RVT2_VULKAN=lavapipe
+    export LD_LIBRARY_PATH=/tmp/lvp/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+    PYTHONPATH=${SITE:-/tmp/site}:$PWD python3 -m rvt2cli doctor 2>&1 | grep -i vulkan || true   # which driver renders
+    RUN=${TEN}_full EVAL_NAME=v13_full_10_lavapipe EVAL_ARGS="--tasks push_cube,pull_cube" bash $onebox eval ;;
   collect)
     WAIT_S=${WAIT_S:-540} bash $onebox wait ${WAIT_FOR:-eval} || true
     RUNS=$RUNS bash $onebox results ;;
   all)
     bash $onebox setup && bash "$self" evalchain && full_box "$TEN" && full_box "$TWENTYFIVE" && bash "$self" basechain
     RUNS=$RUNS bash $onebox results ;;
-  *) echo "usage: $0 stash|evaluate|evalchain|baseline|basechain|cpugpu|collect|all" >&2; exit 2 ;;
+  *) echo "usage: $0 stash|evaluate|evalchain|baseline|basechain|cpugpu|packlvp|lavapipe|collect|all" >&2; exit 2 ;;
 esac
