@@ -1,5 +1,6 @@
 """`rvt2 record` and `rvt2 extract-keyframes` in the real simulator, on real MCAP files."""
 
+import os
 import sys
 from pathlib import Path
 
@@ -152,23 +153,22 @@ def test_an_episode_depends_on_its_seed_not_on_the_episodes_before_it():
     assert runs[0].shape == runs[1].shape and np.array_equal(runs[0], runs[1])
 
 
-def test_lavapipe_renders_on_the_cpu_device(monkeypatch):
+def test_lavapipe_renders_on_the_cpu_device():
     """Forced to lavapipe (a CPU device), the simulator does not ask SAPIEN for a CUDA render device,
     which lavapipe lacks where CUDA exists (there every episode failed; without CUDA, SAPIEN fell back
-    to the CPU device by itself)."""
-    from rvt2cli.record.scene import make_env
-    from rvt2cli.tasks import get_task
+    to the CPU device by itself). In its own process: the Vulkan driver is chosen once per process."""
+    import subprocess
 
-    monkeypatch.setenv("RVT2_VULKAN", "lavapipe")
-    monkeypatch.delenv("RVT2_VULKAN_CHOSEN", raising=False)
-    env = make_env(get_task("push_cube"), cameras=("front",), image_size=32)
-    try:
-        assert env.unwrapped.backend.render_backend == "sapien_cpu"
-        env.reset(seed=0)
-        image = np.asarray(env.render()[0].cpu().numpy())
-        assert image.ndim == 3 and image.shape[-1] == 3 and image.std() > 0   # a picture of the scene, not a blank
-    finally:
-        env.close()
+    script = ("import numpy as np; from rvt2cli.record.scene import make_env; from rvt2cli.tasks import get_task\n"
+              "env = make_env(get_task('push_cube'), cameras=('front',), image_size=32); env.reset(seed=0)\n"
+              "image = np.asarray(env.render()[0].cpu().numpy())\n"
+              "print(env.unwrapped.backend.render_backend, image.ndim, image.shape[-1], float(image.std()))\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("RVT2_VULKAN_CHOSEN", "VK_ICD_FILENAMES", "VK_DRIVER_FILES")}
+    r = subprocess.run([sys.executable, "-c", script], env={**env, "RVT2_VULKAN": "lavapipe"},
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    backend, ndim, channels, std = r.stdout.split()
+    assert backend == "sapien_cpu" and (ndim, channels) == ("3", "3") and float(std) > 0  # a picture of the scene
 
 
 def test_own_insert_peg_expert_succeeds_where_maniskills_does_not():
