@@ -22,6 +22,7 @@ from rvt2cli.eval.media import write_rollout, write_video
 from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
+from rvt2cli.eval.search import InsertionSearch
 from rvt2cli.runtime import end_with_parent
 from rvt2cli.tasks import get_task
 
@@ -152,7 +153,7 @@ def untrained_tasks(opts: EvalOptions, checkpoint_tasks: list[str]) -> list[str]
 def search_grids(task_names) -> dict:
     """{task: its insertion search's grid pitch and probe retract, mm} for the tasks that search."""
     return {name: {"pitch_mm": task.search_pitch_mm, "retract_mm": task.search_retract_mm}
-            for name in task_names if (task := get_task(name)).search_pitch_mm > 0}
+            for name in task_names if InsertionSearch.for_task(task := get_task(name))}
 
 
 def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:

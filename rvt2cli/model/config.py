@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from rvt2cli.model.observation import LANG_DIM, PROPRIO_DIM
 from rvt2cli.render.cameras import RVT1_VIEWS, RVT2_VIEWS
+from rvt2cli.render.workspace import Workspace
 from rvt2cli.tasks import DEFAULT_SCENE_BOUNDS
 
 
@@ -63,7 +64,7 @@ class ModelConfig:
             return self.stage2_window
         if self.stage2_noise <= 0:
             return 1.0
-        half_m = (DEFAULT_SCENE_BOUNDS[3] - DEFAULT_SCENE_BOUNDS[0]) / 2  # metres per cube unit
+        half_m = Workspace.from_bounds(DEFAULT_SCENE_BOUNDS).half_extent  # metres per cube unit
         return min(1.0, self.stage2_noise * self.zoom / half_m)
 
     def to_dict(self) -> dict:
