@@ -1,0 +1,96 @@
+"""Can the cameras see the goal when the policy must decide where to carry the object?
+
+RVT-2 predicts each keyframe from the current observation alone. On a task whose goal is a marker the
+policy must see (tasks/*.toml `show_hidden`, e.g. pick_cube's green sphere), the keyframe that carries
+the grasped object is predicted from the observation right after the gripper closes. This runs the
+scripted expert on each seed, restores the scene a few control steps after the gripper's first closing
+command, renders the task's cameras with segmentation (`rvt2cli.record.scene.capture_cameras`) and counts
+the marker's pixels in each. Evaluation journals (`rvt2 eval`'s episodes.jsonl) mark which seeds their
+policy failed, so visibility can be compared between failed and successful episodes.
+
+    python -m benchmarks.goal_visibility [--task pick_cube] [--seeds 50] [--first-seed 10000]
+                                         [--after-close 8] [--journal NAME=episodes.jsonl ...] [--json out.json]
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.machine import describe
+from rvt2cli.tasks import get_task
+
+
+def marker_ids(env, names) -> list[int]:
+    """Segmentation ids of the scene actors with these names."""
+    from mani_skill.utils.structs import Actor
+
+    return [i for i, obj in env.unwrapped.segmentation_id_map.items() if isinstance(obj, Actor) and obj.name in names]
+
+
+def visibility(env, task, seed: int, after_close: int) -> dict[str, int]:
+    """The marker's pixels per camera, `after_close` control steps after the expert first closes the gripper."""
+    from rvt2cli.record.expert import run_expert
+    from rvt2cli.record.scene import capture_cameras, restore_sim_state
+
+    frames = run_expert(env, task.expert, seed, max_frames=task.max_steps).frames
+    closing = next((i for i, f in enumerate(frames) if f.gripper_command < 0), None)
+    if closing is None:
+        raise SystemExit(f"{task.name} seed {seed}: the expert never closed the gripper; choose a grasping task")
+    restore_sim_state(env, frames[min(closing + after_close, len(frames) - 1)].sim)
+    segmentation: dict = {}
+    capture_cameras(env, segmentation)
+    ids = marker_ids(env, set(task.show_hidden))
+    return {camera: int(np.isin(seg, ids).sum()) for camera, seg in segmentation.items()}
+
+
+def failed_seeds(path: str, task: str) -> set[int]:
+    lines = Path(path).read_text().splitlines()[1:]
+    return {r["seed"] for r in map(json.loads, lines) if r["task"] == task and r["source"] == "policy" and not r["success"]}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--task", default="pick_cube")
+    p.add_argument("--seeds", type=int, default=50)
+    p.add_argument("--first-seed", type=int, default=10_000)
+    p.add_argument("--after-close", type=int, default=8, help="control steps after the gripper's first closing command")
+    p.add_argument("--journal", action="append", default=[], metavar="NAME=PATH",
+                   help="an evaluation's episodes.jsonl: which seeds its policy failed (repeatable)")
+    p.add_argument("--json", help="write the rows and the summary here too")
+    args = p.parse_args(argv)
+    task = get_task(args.task)
+    if not task.show_hidden:
+        raise SystemExit(f"{task.name}: tasks/{task.name}.toml shows no hidden marker (show_hidden); choose a task that does")
+    journals = dict(j.split("=", 1) for j in args.journal)
+    failed = {name: failed_seeds(path, task.name) for name, path in journals.items()}
+
+    from rvt2cli.record.scene import make_env
+
+    env = make_env(task)
+    rows = []
+    print(f"{task.name}: pixels of {', '.join(task.show_hidden)} per camera, {args.after_close} control steps after the "
+          f"expert closes the gripper; {describe()}")
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
+        pixels = visibility(env, task, seed, args.after_close)
+        row = {"seed": seed, "pixels": pixels, "total": sum(pixels.values()),
+               "failed": {name: seed in seeds for name, seeds in failed.items()}}
+        rows.append(row)
+        marks = " ".join(f"{name}:{'FAIL' if bad else 'ok'}" for name, bad in row["failed"].items())
+        print(f"seed {seed}: {row['total']:5d} px  {pixels}  {marks}", flush=True)
+    summary = {}
+    for name in failed:
+        groups = {kind: [r["total"] for r in rows if r["failed"][name] == (kind == "failed")] for kind in ("failed", "succeeded")}
+        summary[name] = {kind: {"episodes": len(v), "median_px": float(np.median(v)) if v else None,
+                                "none_visible": sum(t == 0 for t in v)} for kind, v in groups.items()}
+        print(f"{name}: " + "; ".join(f"{kind} {s['episodes']}, median {s['median_px']} px, {s['none_visible']} with none"
+                                      for kind, s in summary[name].items()))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": describe(), "task": task.name, "after_close": args.after_close,
+                                               "rows": rows, "summary": summary}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
