@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.machine import describe
+from rvt2cli.errors import UserError
 from rvt2cli.tasks import get_task
 
 
@@ -46,8 +47,11 @@ def visibility(env, task, seed: int, after_close: int) -> dict[str, int]:
 
 
 def failed_seeds(path: str, task: str) -> set[int]:
-    lines = Path(path).read_text().splitlines()[1:]
-    return {r["seed"] for r in map(json.loads, lines) if r["task"] == task and r["source"] == "policy" and not r["success"]}
+    """The seeds of `task` whose policy episode failed in an evaluation journal."""
+    from rvt2cli.eval.journal import read_journal
+
+    _, records = read_journal(Path(path))
+    return {r["seed"] for r in records if r["task"] == task and r["source"] == "policy" and not r["success"]}
 
 
 def main(argv=None) -> int:
@@ -64,7 +68,10 @@ def main(argv=None) -> int:
     if not task.show_hidden:
         raise SystemExit(f"{task.name}: tasks/{task.name}.toml shows no hidden marker (show_hidden); choose a task that does")
     journals = dict(j.split("=", 1) for j in args.journal)
-    failed = {name: failed_seeds(path, task.name) for name, path in journals.items()}
+    try:
+        failed = {name: failed_seeds(path, task.name) for name, path in journals.items()}
+    except (OSError, UserError) as error:
+        raise SystemExit(str(error)) from None
 
     from rvt2cli.record.scene import make_env
 
