@@ -54,7 +54,7 @@ def test_reaches_poses_while_holding_a_cube(env):
     task = get_task("pick_cube")
     oracle = OracleSource(env)
     seed_everything(6)
-    keyframes = oracle.keyframes(task, 6)            # the expert's keyframes: reach, grasp, carry
+    keyframes = oracle.keyframes(task, 6)            # the expert's keyframes: reach, grasp, lift, carry
     env.reset(seed=6)
     executor = Executor(env, step_budget=2000, speed=task.planner_speed, gripper_close=task.gripper_close)
     for keyframe in keyframes[:2]:                   # move over the cube and grasp it

@@ -23,6 +23,18 @@ REPLAN_SHIFT_M = 0.03
 REPLAN_YAW_DEG = 10.0
 
 
+def expert_keyframes(env, task: Task, seed: int, params: KeyframeParams = KeyframeParams()):
+    """The scripted expert's run on `seed` (its status, and its frames, which restore the scene) and the
+    keyframes the rule finds in it, labelled as a recorded demo's are."""
+    run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+    frames = run.frames
+    facts = RobotFacts.from_agent(env.unwrapped.agent)
+    names = frames[0].state["joint_names"]
+    arm_velocities = facts.arm(np.array([f.state["joint_velocities"] for f in frames]), names)
+    return run, label_keyframes([f.gripper_command for f in frames], arm_velocities, [f.contacts for f in frames],
+                                [f.state["tcp_pose"] for f in frames], params, [f.near for f in frames])
+
+
 class PolicySource(KeyframeSource):
     """The trained policy: cloud + instruction + proprio -> next keyframe."""
 
@@ -105,12 +117,7 @@ class OracleSource(KeyframeSource):
         if demo is not None:
             ep = read_episode(demo)
             return list((ep.keyframes or annotate(ep, self.params).keyframes).keyframes)
-        frames = run_expert(self.env, task.expert, seed, max_frames=task.max_steps).frames
-        facts = RobotFacts.from_agent(self.env.unwrapped.agent)
-        names = frames[0].state["joint_names"]
-        arm_velocities = facts.arm(np.array([f.state["joint_velocities"] for f in frames]), names)
-        return label_keyframes([f.gripper_command for f in frames], arm_velocities, [f.contacts for f in frames],
-                               [f.state["tcp_pose"] for f in frames], self.params, [f.near for f in frames])
+        return expert_keyframes(self.env, task, seed, self.params)[1]
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
         self.queue = self.keyframes(task, seed)  # runs the expert, which resets the scene itself
