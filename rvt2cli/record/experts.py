@@ -68,22 +68,29 @@ def _solver(env, speed: float):
                          joint_vel_limits=speed, joint_acc_limits=speed)
 
 
+def _grasp_from_above(scene, actor, at=None):
+    """ManiSkill's top-down grasp of `actor`: fingers closing across its bounding box, nearest the way the
+    open gripper faces now, FINGER_LENGTH deep, centred `at` (default: the box's grasp centre)."""
+    from mani_skill.examples.motionplanning.base_motionplanner.utils import compute_grasp_info_by_obb, get_actor_obb
+
+    approaching = np.array([0, 0, -1])
+    closing = scene.agent.tcp.pose.to_transformation_matrix()[0, :3, 1].cpu().numpy()
+    grasp = compute_grasp_info_by_obb(get_actor_obb(actor), approaching=approaching, target_closing=closing,
+                                      depth=FINGER_LENGTH)
+    return scene.agent.build_grasp_pose(approaching, grasp["closing"], grasp["center"] if at is None else at)
+
+
 def insert_peg(env, seed=None):
     """PegInsertionSide-v1: grasp the peg, align it a peg's length before the hole, re-aim from its
     measured pose, push it in along the hole's axis. Returns -1 when a motion cannot be planned."""
     import sapien
-    from mani_skill.examples.motionplanning.base_motionplanner.utils import compute_grasp_info_by_obb, get_actor_obb
 
     env.reset(seed=seed)
     planner = _solver(env, speed=0.75)
     scene = env.unwrapped
     half_length = scene.peg_half_sizes[0, 0].item()
 
-    approaching = np.array([0, 0, -1])
-    closing = scene.agent.tcp.pose.to_transformation_matrix()[0, :3, 1].cpu().numpy()
-    grasp = compute_grasp_info_by_obb(get_actor_obb(scene.peg), approaching=approaching, target_closing=closing,
-                                      depth=FINGER_LENGTH)
-    grasp_pose = scene.agent.build_grasp_pose(approaching, grasp["closing"], grasp["center"])
+    grasp_pose = _grasp_from_above(scene, scene.peg)
     grasp_pose = grasp_pose * sapien.Pose([-max(0.05, half_length / 2 + 0.01), 0, 0])  # towards the tail
     peg_on_table = scene.peg.pose
 
@@ -119,16 +126,11 @@ def pick_cube(env, seed=None):
     motions are insert_peg's (fine joint steps, each held until the arm rests). Returns -1 when a motion
     cannot be planned."""
     import sapien
-    from mani_skill.examples.motionplanning.base_motionplanner.utils import compute_grasp_info_by_obb, get_actor_obb
 
     env.reset(seed=seed)
     scene = env.unwrapped
     planner = _solver(env, speed=0.9)  # ManiSkill's speed; fine steps, which plan the lift where 0.1 rad steps fail
-    approaching = np.array([0, 0, -1])
-    closing = scene.agent.tcp.pose.to_transformation_matrix()[0, :3, 1].cpu().numpy()
-    grasp = compute_grasp_info_by_obb(get_actor_obb(scene.cube), approaching=approaching, target_closing=closing,
-                                      depth=FINGER_LENGTH)
-    grasp_pose = scene.agent.build_grasp_pose(approaching, grasp["closing"], scene.cube.pose.sp.p)
+    grasp_pose = _grasp_from_above(scene, scene.cube, at=scene.cube.pose.sp.p)  # ManiSkill's: at the cube's centre
     if planner.move_to_pose_with_screw(grasp_pose * sapien.Pose([0, 0, -0.05])) == -1:
         return -1
     if planner.move_to_pose_with_screw(grasp_pose, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe

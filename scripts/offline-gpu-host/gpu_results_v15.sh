@@ -17,9 +17,7 @@ export EPISODES=10 RUN=${RUN:-v15_10} CHAIN=through
 export OTHERS=${OTHERS:-pick_cube,place_sphere,lift_peg_upright,stack_cube,push_cube,pull_cube}
 case ${1:-} in
   stash|start|collect|all) bash scripts/offline-gpu-host/gpu_results_v11.sh "$1" ;;
-  replicate)
-    RUN=${REPLICATE:-v15_10_seed1} \
-      TRAIN="--rotation-bins 360 --rotation-sigma 2 --start-share 0.5 --aim-held --coarse-action-features --task-weights insert_peg=3,plug_charger=3 --seed 1" \
-      bash scripts/offline-gpu-host/gpu_results_v11.sh "${2:-all}" ;;
+  replicate)  # v14's replicate (the same recipe with --seed 1), on these demos and under this name
+    REPLICATE=${REPLICATE:-v15_10_seed1} bash scripts/offline-gpu-host/gpu_results_v14.sh replicate "${2:-all}" ;;
   *) echo "usage: $0 stash|start|collect|all|replicate [start|collect|all]" >&2; exit 2 ;;
 esac
