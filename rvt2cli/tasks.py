@@ -40,14 +40,28 @@ class Task:
     search_pitch_mm: float = 0.0       # > 0: an insertion stopped at a face searches for the hole on this grid (rvt2cli.eval.search)
     search_retract_mm: float = 4.0     # ...each probe backing off this far from the face before it shifts
     env_kwargs: dict = field(default_factory=dict)
+    # Variations: each table gives the values of the instruction's placeholders for one variation (over
+    # `variables`); the environment learns its index (rvt2cli.record.rlbench18.base). None listed: one.
+    variations: tuple[dict, ...] = ()
+    paraphrases: tuple[str, ...] = ()          # held-out instruction templates that training never sees
+    held_out_variations: tuple[int, ...] = ()  # a compositional split that recording can leave out
+    task_sets: tuple[str, ...] = ()            # named sets this task belongs to (e.g. "rlbench18")
 
-    def instruction(self, seed: int) -> tuple[str, int]:
+    @property
+    def num_variations(self) -> int:
+        return max(1, len(self.variations))
+
+    def variation_values(self, variation: int = 0) -> dict:
+        """The placeholder values of one variation."""
+        return {**self.variables, **(self.variations[variation] if self.variations else {})}
+
+    def instruction(self, seed: int, variation: int = 0) -> tuple[str, int]:
         """The instruction of the episode with this seed: (text, template index), deterministic."""
         index = random.Random(seed).randrange(len(self.instructions))
-        return self.instructions[index].format(**self.variables), index
+        return self.instructions[index].format(**self.variation_values(variation)), index
 
     def all_instructions(self) -> list[str]:
-        return [t.format(**self.variables) for t in self.instructions]
+        return [t.format(**self.variation_values(v)) for v in range(self.num_variations) for t in self.instructions]
 
 
 _REQUIRED = ("name", "env_id", "expert", "instructions", "max_steps")
@@ -64,7 +78,8 @@ def _parse(text: str, source: str) -> Task:
     unknown = set(raw) - set(Task.__dataclass_fields__)
     if unknown:
         raise UserError(f"{source}: unknown field(s) {', '.join(sorted(unknown))}")
-    for key in ("instructions", "scene_bounds", "cameras", "show_hidden", "aim_offset"):
+    for key in ("instructions", "scene_bounds", "cameras", "show_hidden", "aim_offset", "variations", "paraphrases",
+                "held_out_variations", "task_sets"):
         if key in raw:
             raw[key] = tuple(raw[key])
     task = Task(**raw)
@@ -78,6 +93,7 @@ def _parse(text: str, source: str) -> Task:
         raise UserError(f"{source}: search_retract_mm must be a number > 0 (mm a probe backs off the face)")
     try:
         task.all_instructions()
+        [p.format(**task.variation_values(v)) for v in range(task.num_variations) for p in task.paraphrases]
     except KeyError as e:
         raise UserError(f"{source}: instruction uses {{{e.args[0]}}} but [variables] does not define it") from None
     return task

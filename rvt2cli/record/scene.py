@@ -25,6 +25,8 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
     """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras."""
     driver = use_vulkan_driver()
     import mani_skill.envs  # noqa: F401 - registers the environments
+
+    import rvt2cli.record.rlbench18  # noqa: F401 - registers rvt2-18's environments
     from mani_skill.utils.logging_utils import logger as mani_skill_logger
 
     mani_skill_logger.setLevel(logging.ERROR)  # e.g. "no CUDA, rendering on the CPU": expected here
