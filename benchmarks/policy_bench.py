@@ -54,7 +54,7 @@ def timer(device):
 
 
 def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int, compile: bool = False,
-                     eight_bit: bool = True) -> dict:
+                     eight_bit: bool = True, profile: str | None = None) -> dict:
     """The training step `rvt2 train` runs (rvt2cli.train.step.TrainStep), on one synthetic batch."""
     policy = RVT2Policy(cfg, render_backend="warp").to(device)
     if compile:
@@ -81,7 +81,27 @@ def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: i
               "params_m": sum(p.numel() for p in policy.parameters()) / 1e6}
     if device.type == "cuda":
         result["peak_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
+    if profile:
+        result["profile"] = profile_steps(step, device, profile)
     return result
+
+
+def profile_steps(step, device, path: str, steps: int = 5, rows: int = 40) -> str:
+    """Where the step's device time goes: torch.profiler over a few steps, kernels by total time (a table
+    written to `path`, its head printed)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        for _ in range(steps):
+            step()
+        timer(device)
+    key = "cuda_time_total" if device.type == "cuda" else "cpu_time_total"
+    table = prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=70)
+    with open(path, "w") as f:
+        f.write(f"{steps} steps\n{table}")
+    print("\n".join(table.splitlines()[:25]))
+    return path
 
 
 def forward_flops(cfg, device, points: int) -> float:
@@ -142,6 +162,7 @@ def main() -> None:
     parser.add_argument("--skip-train", action="store_true")
     parser.add_argument("--skip-inference", action="store_true")
     parser.add_argument("--compile", action="store_true", help="torch.compile the network (training and inference)")
+    parser.add_argument("--profile", help="also profile the training step and write the kernel table here")
     parser.add_argument("--json")
     parser.add_argument("--quick", action="store_true", help="small config, tiny sizes: checks that it runs")
     args = parser.parse_args()
@@ -155,7 +176,7 @@ def main() -> None:
         cfg = get_config(name)
         results["flops"][name] = forward_flops(cfg, device, points)
         for batch in [] if args.skip_train else batches:
-            results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3, compile=args.compile))
+            results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3, compile=args.compile, profile=args.profile))
             print(json.dumps(results["train"][-1]), flush=True)
         if not args.skip_inference:
             results["inference"].append(inference_latency(cfg, device, points, repeats, compile=args.compile))

@@ -148,17 +148,36 @@ def test_torchrun_trains_with_two_processes(tiny_dataset, tmp_path):
     assert load_checkpoint(out).info["step"] == 3
 
 
-def _torchrun(out, *extra):
+def _two_nodes(out, *extra) -> list[list[str]]:
+    """`rvt2 train` as two machines start it (README, "Several machines"): one torchrun per node, one
+    process each, meeting at a c10d rendezvous; here both nodes are this machine."""
+    import socket
     import sys
     from pathlib import Path
 
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
     torchrun = Path(sys.executable).parent / "torchrun"
-    return [str(torchrun), "--nproc-per-node", "2", "-m", "rvt2cli", "train", "--out", str(out), *extra]
+    node = [str(torchrun), "--nnodes", "2", "--nproc-per-node", "1", "--rdzv-backend", "c10d",
+            "--rdzv-endpoint", f"127.0.0.1:{port}", "--rdzv-id", f"rvt2-{port}",
+            "-m", "rvt2cli", "train", "--out", str(out), *extra]
+    return [node, node]
 
 
-def test_ddp_run_killed_and_resumed_continues_exactly_on_both_ranks(tiny_dataset, tmp_path):
-    """Two gloo processes, killed after their first checkpoint and resumed with only --resume: the
-    result equals an uninterrupted run, and each rank kept its own sampling state."""
+def _run_nodes(commands, env, timeout=900) -> None:
+    import subprocess
+
+    procs = [subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) for c in commands]
+    for p in procs:
+        _, err = p.communicate(timeout=timeout)
+        assert p.returncode == 0, err[-3000:]
+
+
+def test_two_node_run_killed_and_resumed_continues_exactly_on_both_ranks(tiny_dataset, tmp_path):
+    """Two "nodes" of one gloo process each (torchrun --nnodes 2, c10d rendezvous), killed after their
+    first checkpoint and resumed with only --resume: the result equals an uninterrupted run, each rank
+    kept its own sampling state, and rank 0 alone wrote the run's files (each log row once)."""
     import os
     import signal
     import subprocess
@@ -167,28 +186,27 @@ def test_ddp_run_killed_and_resumed_continues_exactly_on_both_ranks(tiny_dataset
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     common = ["--data", str(tiny_dataset), "--config", "small", "--steps", "16", "--batch-size", "2", "--max-points", "3000",
               "--val-episodes", "0", "--save-every", "4", "--log-every", "1", "--warmup", "2", "--lr", "3e-3", "--no-progress"]
-    straight = subprocess.run(_torchrun(tmp_path / "a", *common), capture_output=True, text=True, timeout=900, env=env)
-    assert straight.returncode == 0, straight.stderr[-3000:]
+    _run_nodes(_two_nodes(tmp_path / "a", *common), env)
 
     run = tmp_path / "b"
-    proc = subprocess.Popen(_torchrun(run, *common), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
-                            start_new_session=True)
+    procs = [subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, start_new_session=True)
+             for c in _two_nodes(run, *common)]
     deadline = time.time() + 600
-    while not (run / "last").exists() and time.time() < deadline and proc.poll() is None:
+    while not (run / "last").exists() and time.time() < deadline and all(p.poll() is None for p in procs):
         time.sleep(0.05)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
+    for p in procs:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
     killed_at = load_checkpoint(run).info["step"]
     assert killed_at < 16
     state = load_checkpoint(run).state()
     assert state["world_size"] == 2 and not torch.equal(state["generators"][0], state["generators"][1])
 
-    resumed = subprocess.run(_torchrun(run, "--resume"), capture_output=True, text=True, timeout=900, env=env)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    _run_nodes(_two_nodes(run, "--resume"), env)
     a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(run)
     assert b.info["step"] == 16 and all(torch.equal(a.weights[k], b.weights[k]) for k in a.weights)
     rows = lambda d: [(r["step"], r["loss"]) for r in csv.DictReader(open(d / "train.csv"))]  # noqa: E731
-    assert rows(run) == rows(tmp_path / "a")
+    assert rows(run) == rows(tmp_path / "a") and [s for s, _ in rows(run)] == [str(s) for s in range(1, 17)]
 
     from benchmarks.ddp_bench import compare_losses  # the loss-curve comparison of docs/BENCHMARKS.md
 

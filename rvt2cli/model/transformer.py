@@ -29,7 +29,13 @@ class GEGLU(nn.Module):
         self.proj_out = nn.Linear(ratio * width, width)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        value, gate = self.proj_in(x).chunk(2, dim=-1)
+        # Two products over the halves of proj_in rather than one product chunked in two: the chunk's
+        # backward is one pointwise kernel writing both halves of the gradient, which ran 4x slower than
+        # the forward's on an H200 (docs/BENCHMARKS.md, "Training step profile"). Same weights, same result.
+        hidden = self.proj_out.in_features
+        weight, bias = self.proj_in.weight, self.proj_in.bias
+        value = F.linear(x, weight[:hidden], bias[:hidden])
+        gate = F.linear(x, weight[hidden:], bias[hidden:])
         return self.proj_out(value * F.gelu(gate))
 
 

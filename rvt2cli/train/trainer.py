@@ -368,8 +368,27 @@ def describe_terms(counts: Counter) -> str:
     return ", ".join(f"{name} in {n} step{'s' if n != 1 else ''}" for name, n in ordered)
 
 
-def train(opts: TrainOptions, say=print) -> TrainResult:
-    start_time = time.perf_counter()
+@dataclass
+class TrainingSetup:
+    """What `train` builds before its loop (and `benchmarks/ddp_nonfinite.py` drives step by step)."""
+
+    opts: TrainOptions
+    resume: Checkpoint | None
+    rank: int
+    world: int
+    device: torch.device
+    cfg: ModelConfig
+    data: TrainingData
+    policy: RVT2Policy
+    model: torch.nn.Module     # what runs the forward pass: the policy, or its DistributedDataParallel wrapper
+    state: TrainingState
+    train_step: TrainStep
+    batches: BatchStream
+    amp: bool
+    total_batch: int
+
+
+def setup_training(opts: TrainOptions, say=print) -> TrainingSetup:
     rank, world = _distributed()
     say = say if rank == 0 else (lambda *_: None)
     device = pick_device(opts.device)
@@ -414,6 +433,17 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     train_step = TrainStep(policy, optimizer, state.schedule, amp, opts.clip, model)
     batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share,
                           data.task_weights)
+    return TrainingSetup(opts, resume, rank, world, device, cfg, data, policy, model, state, train_step, batches, amp,
+                         total_batch)
+
+
+def train(opts: TrainOptions, say=print) -> TrainResult:
+    start_time = time.perf_counter()
+    setup = setup_training(opts, say)
+    opts, resume, rank, world, cfg = setup.opts, setup.resume, setup.rank, setup.world, setup.cfg
+    data, policy, state, train_step, batches = setup.data, setup.policy, setup.state, setup.train_step, setup.batches
+    amp, total_batch, run_dir = setup.amp, setup.total_batch, Path(opts.out)
+    say = say if rank == 0 else (lambda *_: None)
     samples = data.samples
     info = {"tasks": samples.tasks, "bounds": samples.bounds, "rigs": samples.rigs, "options": opts.to_json()}
     if data.aim_offsets is not None:
