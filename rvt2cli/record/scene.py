@@ -80,6 +80,11 @@ def set_variation(env, variation: int) -> None:
         raise ValueError(f"{type(scene).__name__} has one variation, not {variation + 1}")
 
 
+def current_variation(env) -> int:
+    """The variation the scene lays out at its next reset (0 for ManiSkill's own environments)."""
+    return int(getattr(env.unwrapped, "variation", 0))
+
+
 def _wxyz_to_xyzw(q) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64)
     return np.array([q[1], q[2], q[3], q[0]])
