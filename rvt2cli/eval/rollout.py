@@ -122,6 +122,7 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
     set_variation(env, variation)
     source.reset(task, seed, instruction)  # first: the oracle may run the expert on this seed (and variation)
     seed_everything(seed)
+    set_variation(env, variation)  # whatever the source did to the scene
     env.reset(seed=seed)
     executor = Executor(env, step_budget or task.max_steps, task.planner_speed, task.gripper_close,
                         search=InsertionSearch.for_task(task) if search else None)
