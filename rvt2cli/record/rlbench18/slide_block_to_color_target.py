@@ -27,9 +27,9 @@ BLOCK_COLOR = (0.6, 0.1, 0.1)
 
 @register_env("RVT2-SlideBlockToColorTarget-v1", max_episode_steps=300)
 class SlideBlockToColorTargetEnv(VariationEnv):
-    """Success: the block's centre lies over the named target's square (within TARGET_HALF of its centre
-    in x and y, in the target's frame) and the block rests on the table. `wrong_target`: it lies over
-    another target's square instead."""
+    """The block's centre lies over the named target's 8 cm square (within 4 cm of the square's centre
+    along both its sides) and the block rests on the table. `wrong_target`: it lies over another
+    target's square instead."""
 
     num_variations = len(COLORS)
 
