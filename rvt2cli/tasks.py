@@ -70,14 +70,14 @@ class Task:
 
     def variation_choices(self, which: str = "all") -> tuple[int, ...]:
         """The variations episodes are spread over: "all", "seen" (all but the held-out split),
-        "held-out" (only that split; all where the task has none), or one index "K"."""
+        "held-out" (only that split: none where the task has none), or one index "K"."""
         every = tuple(range(self.num_variations))
         if which == "all":
             return every
         if which == "seen":
             return tuple(v for v in every if v not in self.held_out_variations)
         if which == "held-out":
-            return self.held_out_variations or every
+            return tuple(sorted(set(self.held_out_variations)))
         if which.isdigit() and int(which) < self.num_variations:
             return (int(which),)
         raise UserError(f"task {self.name} has no variation {which}; its variations are 0-{self.num_variations - 1}")

@@ -135,6 +135,7 @@ b = "red"
 """, "tasks/t.toml")
     assert task.variation_choices() == (0, 1, 2) and task.variation_choices("seen") == (0, 2)
     assert task.variation_choices("held-out") == (1,) and task.variation_choices("2") == (2,)
+    assert get_task(TASK).variation_choices("held-out") == ()  # no split: eval --variations held-out skips it
     with pytest.raises(UserError, match="no variation 3"):
         task.variation_choices("3")
     assert [episode_variation(s, (0, 2)) for s in range(10, 14)] == [0, 2, 0, 2]
@@ -163,6 +164,8 @@ def test_cli_lists_variations_and_refuses_unknown_sets_and_variations(cli, tmp_p
     assert_one_line_error(cli("record", "--task", TASK, "--variation", "4", "--out", tmp_path), "no variation 4")
     assert_one_line_error(cli("eval", "--oracle", "--task-set", "nope", "--out", tmp_path), "unknown task set")
     assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--variations", "9", "--out", tmp_path), "no variation 9")
+    assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--variations", "held-out", "--out", tmp_path),
+                          "has held_out_variations")
 
 
 def test_oracle_eval_reports_per_variation_with_paraphrases(tmp_path):

@@ -20,7 +20,7 @@ def register(subparsers) -> None:
     p.add_argument("--task-set", help="evaluate every task of this named set (e.g. rlbench18; see rvt2 record --list-tasks)")
     p.add_argument("--variations", default=E.variations, metavar="WHICH",
                    help="the variations episodes spread over, seed by seed: all (default), held-out (each task's "
-                        "held_out_variations), seen (all but those) or one index K")
+                        "held_out_variations; tasks without them are left out), seen (all but those) or one index K")
     p.add_argument("--paraphrases", action="store_true",
                    help="instruct with each task's held-out paraphrases (tasks/*.toml) instead of its training instructions")
     p.add_argument("--episodes", type=COUNT, default=E.episodes, help=f"per task (default {E.episodes})")
@@ -100,6 +100,10 @@ def run(args) -> int:
             + (f"{r['pose_error']['position_mm']['median']:.2f} mm median, {r['pose_error']['position_mm']['p95']:.2f} p95)"
                if r['pose_error']['keyframes'] else "-)")
             for s, r in per.items()))
+        for s, r in per.items():
+            if len(r["variations"]) > 1:
+                print(f"  {s} per variation: " + ", ".join(f"{v}: {x['successes']}/{x['episodes']}"
+                                                         for v, x in r["variations"].items()))
     print(f"report: {result.out_dir}/eval.md, eval.json, eval.png")
     return 0
 

@@ -129,8 +129,11 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict,
     if not tasks:
         raise UserError("no tasks to evaluate: give --tasks (or a checkpoint, whose training tasks are the default)")
     choices = {name: get_task(name).variation_choices(opts.variations) for name in tasks}
+    if not any(choices.values()):  # only --variations held-out leaves a task none
+        raise UserError(f"--variations {opts.variations}: none of the tasks {', '.join(tasks)} has held_out_variations "
+                        "(tasks/*.toml)")
     jobs = []
-    for name in tasks:
+    for name in [n for n in tasks if choices[n]]:
         def job(source, seed):  # consecutive seeds take the variations in turn: even, and the same in every run
             return Job(source, name, seed, episode_variation(seed, choices[name]))
 
