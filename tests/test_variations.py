@@ -3,7 +3,6 @@ evaluated per variation, in the real simulator on real MCAP files (slide_block_t
 
 import json
 
-import numpy as np
 import pytest
 
 from conftest import assert_one_line_error
