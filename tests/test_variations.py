@@ -96,6 +96,21 @@ def test_recording_spreads_episodes_over_variations_and_stores_them(slide_demos,
     assert "variation    2  color=pink" in cli("info", slide_demos / f"{TASK}_0002.mcap").stdout
 
 
+def test_training_samples_carry_their_own_variations_instruction(slide_demos):
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.keyframes.extract import extract_file
+    from rvt2cli.train.samples import load_samples
+
+    paths = episode_paths([str(slide_demos)])
+    for path in paths:
+        extract_file(path)
+    samples = load_samples(paths, progress=False, keyframe_starts_only=True)
+    for i in range(len(samples)):
+        seed = read_episode(samples.episodes[samples.episode_index[i]]).meta.seed
+        assert samples.instructions[samples.instruction_index[i]] == get_task(TASK).instruction(seed, seed)[0]
+    assert len(set(samples.instruction_index)) == 4
+
+
 def test_record_one_variation(tmp_path):
     summary = record(TASK, 2, tmp_path, seed=10, options=RecordOptions(**{**SMALL.__dict__, "variations": "3"}))
     assert summary.successes_per_variation() == {3: 2}
@@ -204,3 +219,15 @@ def test_a_push_onto_another_variations_target_fails_as_wrong_target(slide_env):
                           variation=1)
     assert not outcome.success and outcome.variation == 1 and outcome.wrong == "wrong_target"
     assert failure_reason(episode_record("policy", outcome), insertion=False) == "wrong_target"
+
+
+def test_record_cli_records_one_variation(cli, tmp_path):
+    r = cli("record", "--task", TASK, "--variation", "2", "--episodes", "1", "--seed", "3", "--out", tmp_path,
+            "--cameras", "front", "--image-size", "32", "--obs-every", "50", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "episodes per variation: 2: 1" in r.stdout
+    assert read_episode(tmp_path / f"{TASK}_0003.mcap").variation_index == 2
+    assert_one_line_error(cli("record", "--task", TASK, "--variation", "1", "--hold-out-variations", "--out", tmp_path),
+                          "not both")
+    assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--paraphrases", "--instruction", "x", "--out", tmp_path),
+                          "not both")
