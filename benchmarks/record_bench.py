@@ -1,10 +1,12 @@
-"""Recording benchmarks: expert success per task, and insert_peg episodes per minute and MB per episode.
+"""Recording benchmarks: expert success per task (and per variation), and episodes per minute and MB per episode.
 
-    python -m benchmarks.record_bench [--seeds 20] [--first-seed 0] [--episodes 8] [--workers 2] [--json out.json] [--quick]
+    python -m benchmarks.record_bench [--tasks a,b | --task-set rlbench18] [--seeds 20] [--first-seed 0]
+                                      [--episodes 8] [--workers 2] [--json out.json] [--quick]
 
-Expert success runs each task's expert on seeds FIRST..FIRST+N-1 without rendering (`--first-seed 10000`:
-the seeds `rvt2 eval` uses; `--episodes 0` skips the throughput part). Throughput records
-successful insert_peg episodes with the default camera rig, as `rvt2 record` does.
+Expert success runs each task's expert on seeds FIRST..FIRST+N-1 without rendering, each seed in the
+variation `rvt2 record` gives it (`--first-seed 10000`: the seeds `rvt2 eval` uses; `--episodes 0` skips
+the throughput part). Throughput records successful episodes with the default camera rig, as
+`rvt2 record` does: of insert_peg, or with --task-set of every task of the set (the time for all).
 """
 
 import argparse
@@ -16,29 +18,37 @@ from benchmarks.machine import describe
 from rvt2cli.record.expert import run_expert
 from rvt2cli.record.recorder import RecordOptions, record
 from rvt2cli.record.scene import make_env
-from rvt2cli.tasks import all_tasks
+from rvt2cli.tasks import all_tasks, episode_variation, tasks_of_set
 
 
 def expert_success(task, seeds: int, first_seed: int = 0) -> dict:
     env = make_env(task, cameras=("front",), image_size=32)
-    statuses, frames, start = [], [], time.perf_counter()
+    statuses, variations, frames, start = [], [], [], time.perf_counter()
     for seed in range(first_seed, first_seed + seeds):
-        run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+        variation = episode_variation(seed, task.variation_choices())
+        run = run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation)
         statuses.append(run.status)
+        variations.append(variation)
         frames.append(len(run.frames))
     env.close()
+    per_variation = {str(v): sum(s == "success" for s, w in zip(statuses, variations) if w == v) / variations.count(v)
+                     for v in sorted(set(variations))}
     return {"task": task.name, "seeds": seeds, "first_seed": first_seed, "success": statuses.count("success") / seeds,
-            "per_seed": statuses,
+            "per_seed": statuses, "variations": variations, "per_variation": per_variation,
             "statuses": {s: statuses.count(s) for s in sorted(set(statuses))},
             "mean_frames": sum(frames) / seeds, "seconds_per_episode": (time.perf_counter() - start) / seeds}
 
 
-def record_throughput(episodes: int, workers: int) -> dict:
+def record_throughput(episodes: int, workers: int, tasks=("insert_peg",)) -> dict:
+    sizes, attempts, seconds = [], 0, 0.0
     with tempfile.TemporaryDirectory() as out:
-        summary = record("insert_peg", episodes, out, seed=0, workers=workers, options=RecordOptions())
-        sizes = [r.size_bytes for r in summary.successes]
-    return {"task": "insert_peg", "episodes": len(summary.successes), "attempts": len(summary.results), "workers": workers,
-            "seconds": summary.seconds, "episodes_per_minute": 60 * len(summary.successes) / summary.seconds,
+        for task in tasks:
+            summary = record(task, episodes, out, seed=0, workers=workers, options=RecordOptions())
+            sizes += [r.size_bytes for r in summary.successes]
+            attempts += len(summary.results)
+            seconds += summary.seconds
+    return {"tasks": list(tasks), "episodes": len(sizes), "attempts": attempts, "workers": workers,
+            "seconds": seconds, "episodes_per_minute": 60 * len(sizes) / seconds,
             "mb_per_episode": sum(sizes) / len(sizes) / 1e6, "max_mb": max(sizes) / 1e6}
 
 
@@ -49,23 +59,26 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--tasks", help="comma-separated (default: all)")
+    parser.add_argument("--task-set", help="the tasks of this named set (e.g. rlbench18), also for the throughput")
     parser.add_argument("--json", help="write results here")
     parser.add_argument("--quick", action="store_true", help="2 seeds of 2 tasks, 1 episode: checks that it runs")
     args = parser.parse_args()
-    names = args.tasks.split(",") if args.tasks else list(all_tasks())
+    names = args.tasks.split(",") if args.tasks else tasks_of_set(args.task_set) if args.task_set else list(all_tasks())
     seeds, episodes = args.seeds, args.episodes
     if args.quick:
         names, seeds, episodes = ["push_cube", "insert_peg"], 2, 1
     results = {"machine": describe(), "expert": [], "throughput": None}
-    print("| task | expert success | seeds | mean frames | s/episode (no rendering) |\n|---|---|---|---|---|")
+    print("| task | expert success | per variation | seeds | mean frames | s/episode (no rendering) |\n|---|---|---|---|---|---|")
     for name in names:
         r = expert_success(all_tasks()[name], seeds, args.first_seed)
         results["expert"].append(r)
-        print(f"| {name} | {r['success']:.2f} | {seeds} | {r['mean_frames']:.0f} | {r['seconds_per_episode']:.2f} |", flush=True)
+        spread = " ".join(f"{v}:{rate:.2f}" for v, rate in r["per_variation"].items())
+        print(f"| {name} | {r['success']:.2f} | {spread} | {seeds} | {r['mean_frames']:.0f} | {r['seconds_per_episode']:.2f} |",
+              flush=True)
     if episodes:
-        t = record_throughput(episodes, args.workers)
+        t = record_throughput(episodes, args.workers, names if args.task_set else ("insert_peg",))
         results["throughput"] = t
-        print(f"\ninsert_peg with {t['workers']} workers: {t['episodes_per_minute']:.1f} successful episodes/min "
+        print(f"\n{','.join(t['tasks'])} with {t['workers']} workers: {t['episodes_per_minute']:.1f} successful episodes/min "
               f"({t['episodes']} episodes, {t['attempts']} attempts, {t['seconds']:.0f} s), "
               f"{t['mb_per_episode']:.2f} MB/episode (max {t['max_mb']:.2f})")
     if args.json:

@@ -55,13 +55,39 @@ class Task:
         """The placeholder values of one variation."""
         return {**self.variables, **(self.variations[variation] if self.variations else {})}
 
-    def instruction(self, seed: int, variation: int = 0) -> tuple[str, int]:
-        """The instruction of the episode with this seed: (text, template index), deterministic."""
-        index = random.Random(seed).randrange(len(self.instructions))
-        return self.instructions[index].format(**self.variation_values(variation)), index
+    def instruction(self, seed: int, variation: int = 0, paraphrase: bool = False) -> tuple[str, int]:
+        """The instruction of the episode with this seed: (text, template index), deterministic. With
+        `paraphrase`, one of the held-out paraphrases (a task without them keeps its instructions)."""
+        templates = self.paraphrases if paraphrase and self.paraphrases else self.instructions
+        index = random.Random(seed).randrange(len(templates))
+        return templates[index].format(**self.variation_values(variation)), index
 
     def all_instructions(self) -> list[str]:
         return [t.format(**self.variation_values(v)) for v in range(self.num_variations) for t in self.instructions]
+
+    def all_paraphrases(self) -> list[str]:
+        return [t.format(**self.variation_values(v)) for v in range(self.num_variations) for t in self.paraphrases]
+
+    def variation_choices(self, which: str = "all") -> tuple[int, ...]:
+        """The variations episodes are spread over: "all", "seen" (all but the held-out split),
+        "held-out" (only that split: none where the task has none), or one index "K"."""
+        every = tuple(range(self.num_variations))
+        if which == "all":
+            return every
+        if which == "seen":
+            return tuple(v for v in every if v not in self.held_out_variations)
+        if which == "held-out":
+            return tuple(sorted(set(self.held_out_variations)))
+        if which.isdigit() and int(which) < self.num_variations:
+            return (int(which),)
+        raise UserError(f"task {self.name} has no variation {which}; its variations are 0-{self.num_variations - 1}")
+
+
+def episode_variation(seed: int, choices: tuple[int, ...]) -> int:
+    """The variation of the episode with this seed: consecutive seeds take the choices in turn, so any
+    run of seeds spreads its episodes evenly over them, and a seed's variation never depends on where
+    the run started."""
+    return choices[seed % len(choices)]
 
 
 _REQUIRED = ("name", "env_id", "expert", "instructions", "max_steps")
@@ -91,6 +117,11 @@ def _parse(text: str, source: str) -> Task:
         raise UserError(f"{source}: search_pitch_mm must be a number >= 0 (mm; 0: no insertion search)")
     if not isinstance(task.search_retract_mm, (int, float)) or task.search_retract_mm <= 0:
         raise UserError(f"{source}: search_retract_mm must be a number > 0 (mm a probe backs off the face)")
+    bad = [v for v in task.held_out_variations if not 0 <= v < task.num_variations]
+    if bad:
+        raise UserError(f"{source}: held_out_variations {bad} are not variations of this task (0-{task.num_variations - 1})")
+    if task.held_out_variations and len(set(task.held_out_variations)) >= task.num_variations:
+        raise UserError(f"{source}: held_out_variations leaves no variation to record; hold out fewer")
     try:
         task.all_instructions()
         [p.format(**task.variation_values(v)) for v in range(task.num_variations) for p in task.paraphrases]
@@ -120,3 +151,20 @@ def get_task(name: str) -> Task:
     if name not in tasks:
         raise UserError(f"unknown task {name!r}; known tasks: {', '.join(tasks)}")
     return tasks[name]
+
+
+def task_sets() -> dict[str, list[str]]:
+    """Named task sets (from the tasks' `task_sets`) and their members, in name order."""
+    sets: dict[str, list[str]] = {}
+    for task in all_tasks().values():
+        for name in task.task_sets:
+            sets.setdefault(name, []).append(task.name)
+    return dict(sorted(sets.items()))
+
+
+def tasks_of_set(name: str) -> list[str]:
+    sets = task_sets()
+    if name not in sets:
+        raise UserError(f"unknown task set {name!r}; known task sets: {', '.join(sets) or 'none'} "
+                        "(a task joins a set through `task_sets` in its tasks/*.toml)")
+    return sets[name]

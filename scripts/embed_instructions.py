@@ -1,4 +1,5 @@
-"""Embed every task's instructions into one file, for machines without the text encoder:
+"""Embed every task's instructions (of every variation, and the held-out paraphrases `rvt2 eval
+--paraphrases` uses) into one file, for machines without the text encoder:
 RVT2_EMBEDDINGS=FILE makes rvt2 read them from there (rvt2cli/model/language.py).
 
     python scripts/embed_instructions.py --out .gpu/embeddings.safetensors
@@ -13,6 +14,6 @@ from rvt2cli.tasks import all_tasks
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--out", required=True)
 args = parser.parse_args()
-texts = sorted({text for task in all_tasks().values() for text in task.all_instructions()})
+texts = sorted({text for task in all_tasks().values() for text in task.all_instructions() + task.all_paraphrases()})
 save_embeddings(texts, args.out, max(c.lang_tokens for c in CONFIGS.values()))
 print(f"{args.out}: {len(texts)} instructions")

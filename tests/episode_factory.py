@@ -2,16 +2,23 @@
 
 import numpy as np
 
-from rvt2cli.data import CameraFrame, Cloud, EpisodeMeta, EpisodeWriter
+from rvt2cli.data import CameraFrame, Cloud, EpisodeMeta, EpisodeWriter, schemas, topics
 
 JOINTS = [f"panda_joint{i}" for i in range(1, 8)] + ["panda_finger_joint1", "panda_finger_joint2"]
 
 
-def random_episode(path, seed: int = 0, frames: int = 12, obs_every: int = 5, cameras=("front", "wrist")):
+def random_episode(path, seed: int = 0, frames: int = 12, obs_every: int = 5, cameras=("front", "wrist"),
+                   variation_index: int | None = 0):
+    """`variation_index=None`: the instruction as rvt2 wrote it before format 1.2, without one."""
     rng = np.random.default_rng(seed)
     truth = {"qpos": [], "qvel": [], "tcp": [], "clouds": {}, "cams": {}, "sim": []}
     with EpisodeWriter(path, control_hz=20.0) as w:
-        w.write_instruction("insert the peg into the box", task="insert_peg", template_index=0, variation={})
+        if variation_index is None:
+            w._mcap.write_json(topics.INSTRUCTION, schemas.INSTRUCTION, {"text": "insert the peg into the box", "task": "insert_peg",
+                                                                         "template_index": 0, "variation": {}}, 0)
+        else:
+            w.write_instruction("insert the peg into the box", task="insert_peg", template_index=0, variation={},
+                                variation_index=variation_index)
         for t in range(frames):
             qpos = rng.normal(size=9).astype(np.float32)
             qvel = rng.normal(size=9).astype(np.float32)

@@ -415,3 +415,15 @@ def test_aim_held_needs_a_task_that_declares_an_aim_offset(tiny_dataset, tmp_pat
             "--no-progress")
     assert_one_line_error(r, "--aim-held", "stack_cube", "aim_offset")
     assert not (tmp_path / "aim").exists() or not any((tmp_path / "aim").iterdir())
+
+
+def test_task_set_trains_on_the_sets_episodes_only(tiny_dataset, tmp_path, cli):
+    from rvt2cli.train.trainer import load_training_data
+
+    samples, _ = load_training_data([str(tiny_dataset)], False, False, keyframe_starts_only=True, task_set="maniskill9")
+    assert samples.tasks == ["stack_cube"] and len(samples) > 0
+    with pytest.raises(UserError, match="no training samples .* of the tasks .*slide_block_to_color_target"):
+        load_training_data([str(tiny_dataset)], False, False, keyframe_starts_only=True, task_set="rlbench18")
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "set", "--task-set", "nope", "--config", "small",
+            "--steps", "2", "--no-progress")
+    assert_one_line_error(r, "unknown task set 'nope'")

@@ -17,6 +17,12 @@ def register(subparsers) -> None:
     p.add_argument("--checkpoint", help="run folder or checkpoint written by `rvt2 train`")
     p.add_argument("--offline", nargs="+", metavar="DEMOS", help="score the checkpoint on these recorded episodes (files or folders)")
     p.add_argument("--tasks", type=names, help="comma-separated (default: the checkpoint's training tasks)")
+    p.add_argument("--task-set", help="evaluate every task of this named set (e.g. rlbench18; see rvt2 record --list-tasks)")
+    p.add_argument("--variations", default=E.variations, metavar="WHICH",
+                   help="the variations episodes spread over, seed by seed: all (default), held-out (each task's "
+                        "held_out_variations; tasks without them are left out), seen (all but those) or one index K")
+    p.add_argument("--paraphrases", action="store_true",
+                   help="instruct with each task's held-out paraphrases (tasks/*.toml) instead of its training instructions")
     p.add_argument("--episodes", type=COUNT, default=E.episodes, help=f"per task (default {E.episodes})")
     p.add_argument("--seed", type=SEED, default=E.seed, help=f"first seed (default {E.seed}; demos use 0 upwards)")
     p.add_argument("--workers", type=integer(1, 256), default=E.workers, help="parallel simulator processes, one core each")
@@ -54,8 +60,16 @@ def run(args) -> int:
 
     from rvt2cli.eval.runner import EvalOptions, evaluate
 
+    from rvt2cli.errors import UserError
+    from rvt2cli.tasks import tasks_of_set
+
     warnings.simplefilter("default")
-    opts = EvalOptions(checkpoint=args.checkpoint, tasks=args.tasks or (), episodes=args.episodes, seed=args.seed,
+    if args.tasks and args.task_set:
+        raise UserError("eval takes --tasks or --task-set, not both")
+    if args.paraphrases and args.instruction:
+        raise UserError("eval takes --paraphrases or --instruction, not both")
+    tasks = tuple(tasks_of_set(args.task_set)) if args.task_set else args.tasks or ()
+    opts = EvalOptions(checkpoint=args.checkpoint, tasks=tasks, paraphrases=args.paraphrases, variations=args.variations, episodes=args.episodes, seed=args.seed,
                        workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
@@ -81,11 +95,15 @@ def run(args) -> int:
         for bar in bars:
             bar.close()
     for task, per in result.report["tasks"].items():
-        print(f"{task:<18} " + "  ".join(
+        print(f"{task:<28} " + "  ".join(
             f"{s} {r['success_rate']:.0%} ({r['successes']}/{r['episodes']}, error at rest "
             + (f"{r['pose_error']['position_mm']['median']:.2f} mm median, {r['pose_error']['position_mm']['p95']:.2f} p95)"
                if r['pose_error']['keyframes'] else "-)")
             for s, r in per.items()))
+        for s, r in per.items():
+            if len(r["variations"]) > 1:
+                print(f"  {s} per variation: " + ", ".join(f"{v}: {x['successes']}/{x['episodes']}"
+                                                         for v, x in r["variations"].items()))
     print(f"report: {result.out_dir}/eval.md, eval.json, eval.png")
     return 0
 

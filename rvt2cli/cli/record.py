@@ -1,6 +1,6 @@
 """`rvt2 record`: scripted-expert demonstrations in ManiSkill/SAPIEN -> MCAP episodes."""
 
-from rvt2cli.cli.args import COUNT, POSITIVE, SEED, integer, names
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names
 
 
 def register(subparsers) -> None:
@@ -11,8 +11,13 @@ def register(subparsers) -> None:
                     "the frames training uses. Seeds run upwards from --seed; the same command writes the same files.",
     )
     p.add_argument("--task", help="task name (see --list-tasks)")
-    p.add_argument("--list-tasks", action="store_true", help="print the known tasks and exit")
-    p.add_argument("--episodes", type=COUNT, default=25, help="successful episodes to record (default 25)")
+    p.add_argument("--task-set", help="record every task of this named set in turn (e.g. rlbench18; see --list-tasks)")
+    p.add_argument("--list-tasks", action="store_true", help="print the known tasks (variations, sets) and exit")
+    p.add_argument("--variation", type=NON_NEGATIVE, help="record only this variation (default: the episodes spread "
+                                                            "evenly over the task's variations, seed by seed)")
+    p.add_argument("--hold-out-variations", action="store_true",
+                   help="leave out the task's held_out_variations (a split for measuring generalisation)")
+    p.add_argument("--episodes", type=COUNT, default=25, help="successful episodes to record, per task (default 25)")
     p.add_argument("--out", default="demos", help="output folder (default demos/)")
     p.add_argument("--seed", type=SEED, default=0, help="first seed (default 0)")
     p.add_argument("--workers", type=integer(1, 256), default=1, help="parallel simulator processes (default 1)")
@@ -31,29 +36,45 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from rvt2cli.errors import UserError
     from rvt2cli.record.cameras import CAMERAS
-    from rvt2cli.tasks import all_tasks, get_task
+    from rvt2cli.tasks import all_tasks, get_task, tasks_of_set
 
     if args.list_tasks:
         for task in all_tasks().values():
-            print(f"{task.name:<18} {task.env_id:<22} {task.all_instructions()[0]!r}")
+            sets = ",".join(task.task_sets) or "-"
+            print(f"{task.name:<28} {task.env_id:<32} {task.num_variations:>3} variation{'s' if task.num_variations > 1 else ' '}"
+                  f"  {sets:<12} {task.all_instructions()[0]!r}")
         return 0
-    if not args.task:
-        raise UserError("record needs --task NAME (see `rvt2 record --list-tasks`)")
-    task = get_task(args.task)
+    if bool(args.task) == bool(args.task_set):
+        raise UserError("record needs --task NAME or --task-set SET, one of them (see `rvt2 record --list-tasks`)")
+    if args.variation is not None and args.hold_out_variations:
+        raise UserError("record takes --variation K or --hold-out-variations, not both")
+    tasks = [get_task(args.task)] if args.task else [get_task(n) for n in tasks_of_set(args.task_set)]
+    variations = "seen" if args.hold_out_variations else "all" if args.variation is None else str(args.variation)
+    for task in tasks:
+        task.variation_choices(variations)  # an unknown variation is one line, before any simulator starts
     cameras = args.cameras or None
     unknown = [c for c in cameras or () if c not in CAMERAS]
     if unknown:
         raise UserError(f"unknown camera(s) {', '.join(unknown)}; known cameras: {', '.join(CAMERAS)}")
 
-    from tqdm import tqdm
-
     from rvt2cli.atomic import ensure_folder
-    from rvt2cli.record.recorder import RecordOptions, record
+    from rvt2cli.record.recorder import RecordOptions
 
     ensure_folder(args.out)  # before the progress bar: a bad --out is one line
 
     options = RecordOptions(cameras=cameras, image_size=args.image_size, obs_every=args.obs_every,
-                            voxel_size=args.voxel_size, store_clouds=args.store_clouds, keep_failures=args.keep_failures)
+                            voxel_size=args.voxel_size, store_clouds=args.store_clouds, keep_failures=args.keep_failures,
+                            variations=variations)
+    short = [task.name for task in tasks if not _record_task(task, args, options)]
+    return 1 if short else 0
+
+
+def _record_task(task, args, options) -> bool:
+    """Record one task's episodes with a progress bar and a summary line; whether all succeeded."""
+    from tqdm import tqdm
+
+    from rvt2cli.record.recorder import record
+
     bar = tqdm(total=args.episodes, unit="ep", desc=f"record {task.name}", dynamic_ncols=True, disable=args.no_progress)
 
     def on_result(result, summary):
@@ -73,8 +94,11 @@ def run(args) -> int:
     counts = ", ".join(f"{n} {status}" for status, n in sorted(summary.counts().items()))
     print(f"recorded {len(summary.successes)} successful {task.name} episodes into {args.out}/ in {summary.seconds:.0f} s "
           f"({mb:.1f} MB each); expert success {summary.expert_success_rate:.0%} over {len(summary.results)} attempts ({counts})")
+    if task.num_variations > 1:
+        spread = ", ".join(f"{v}: {n}" for v, n in summary.successes_per_variation().items())
+        print(f"  episodes per variation: {spread}")
     if len(summary.successes) < args.episodes:
-        print(f"rvt2: warning: only {len(summary.successes)} of {args.episodes} episodes succeeded within "
+        print(f"rvt2: warning: only {len(summary.successes)} of {args.episodes} {task.name} episodes succeeded within "
               f"{len(summary.results)} attempts; raise --max-attempts to try more seeds")
-        return 1
-    return 0
+        return False
+    return True

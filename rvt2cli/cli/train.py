@@ -52,6 +52,8 @@ def register(subparsers) -> None:
     p.add_argument("--log-every", type=COUNT, help=f"steps between log rows (default {T.log_every})")
     p.add_argument("--val-episodes", type=NON_NEGATIVE, help=f"episodes held out per task for validation (default {T.val_episodes})")
     p.add_argument("--include-failures", action="store_true", help="also train on episodes in which the expert failed")
+    p.add_argument("--task-set", metavar="SET",
+                   help="train only on the episodes of this named set's tasks in --data (e.g. rlbench18; see rvt2 record --list-tasks)")
     p.add_argument("--episodes-per-task", type=COUNT, metavar="N",
                    help="train on each task's first N episodes only (lowest seeds), e.g. 10 for the few-demo setting")
     p.add_argument("--keyframe-starts-only", action="store_true",

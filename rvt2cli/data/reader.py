@@ -62,6 +62,11 @@ class Episode:
         return len(self.robot)
 
     @property
+    def variation_index(self) -> int:
+        """Which of its task's variations the episode is (files of format 1.1 and older: 0, the only one)."""
+        return int(self.instruction.get("variation_index", 0))
+
+    @property
     def obs_frames(self) -> list[int]:
         return list(self.meta.obs_frames)
 

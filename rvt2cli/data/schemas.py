@@ -13,7 +13,7 @@ import jsonschema
 
 from rvt2cli.errors import UserError
 
-FORMAT_VERSION = "1.1"  # 1.1: rvt2.RobotState may carry `near`
+FORMAT_VERSION = "1.2"  # 1.1: rvt2.RobotState may carry `near`; 1.2: rvt2.Instruction may carry `variation_index`
 FORMAT_MAJOR = 1
 
 ROBOT_STATE = "rvt2.RobotState"

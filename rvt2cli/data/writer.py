@@ -107,8 +107,10 @@ class EpisodeWriter:
     def _t(self, frame: int) -> int:
         return frame_time_ns(frame, self.control_hz)
 
-    def write_instruction(self, text: str, task: str, template_index: int, variation: dict[str, str]) -> None:
-        obj = {"text": text, "task": task, "template_index": template_index, "variation": variation}
+    def write_instruction(self, text: str, task: str, template_index: int, variation: dict,
+                          variation_index: int = 0) -> None:
+        obj = {"text": text, "task": task, "template_index": template_index, "variation": variation,
+               "variation_index": variation_index}
         schemas.check(schemas.INSTRUCTION, obj, f"{self.path} {topics.INSTRUCTION}")
         self._mcap.write_json(topics.INSTRUCTION, schemas.INSTRUCTION, obj, self._t(0))
 

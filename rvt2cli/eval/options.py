@@ -21,6 +21,8 @@ class EvalOptions:
     oracle: bool = False
     demos: tuple[str, ...] = ()       # oracle from these recorded demos (their seeds) instead of the expert
     instruction: str | None = None    # another phrasing of the instruction
+    paraphrases: bool = False         # each task's held-out paraphrases instead of its training instructions
+    variations: str = "all"           # which variations the episodes spread over: all, seen, held-out or one index
     video: bool = False
     save_rollouts: bool = False
     keyframe_budget: int = 25
@@ -34,8 +36,14 @@ class EvalOptions:
 
     def plan(self, checkpoint_path: str | None) -> dict:
         """The options that decide which episodes run and how: a resumed evaluation must keep them."""
-        return {"checkpoint": checkpoint_path, "tasks": list(self.tasks), "episodes": self.episodes, "seed": self.seed,
+        plan = {"checkpoint": checkpoint_path, "tasks": list(self.tasks), "episodes": self.episodes, "seed": self.seed,
                 "oracle": self.oracle, "demos": list(self.demos), "instruction": self.instruction,
                 "keyframe_budget": self.keyframe_budget, "max_replans": self.max_replans,
                 "step_budget_scale": self.step_budget_scale, "replay": self.replay,
                 "insertion_search": self.insertion_search}
+        # options added later join the plan only when set, so that an older rvt2's journal still resumes
+        if self.paraphrases:
+            plan["paraphrases"] = True
+        if self.variations != "all":
+            plan["variations"] = self.variations
+        return plan

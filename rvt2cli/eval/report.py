@@ -37,7 +37,8 @@ def episode_record(source: str, outcome: Outcome) -> dict:
             "failure": outcome.failure, "keyframes": outcome.keyframes, "control_steps": outcome.control_steps,
             "step_budget": outcome.step_budget, "task_max_steps": outcome.task_steps,
             "collision_fallbacks": outcome.collision_fallbacks, "unreached_keyframes": sum(not s.reached for s in outcome.steps),
-            "replans": outcome.replans, "instruction": outcome.instruction, "error": outcome.error,
+            "replans": outcome.replans, "instruction": outcome.instruction, "variation": outcome.variation,
+            "wrong": outcome.wrong, "error": outcome.error,
             "steps": [{"frame": s.frame, "reached": s.reach.reached, "retry": s.retry, "planner": s.reach.planner,
                        "position_error_mm": s.reach.position_error_mm, "rotation_error_deg": s.reach.rotation_error_deg,
                        "servo_steps": s.reach.servo_steps, "target": list(s.keyframe.pose),
@@ -97,7 +98,20 @@ def summarize(records: list[dict], insertion: bool = False) -> dict:
         # ignore them push into the scene (insertions, pushes) and rest where a contact stops them
         "pose_error_free": pose_errors([s for s in steps if not s["ignore_collisions"]]),
         "pose_error_contact": pose_errors([s for s in steps if s["ignore_collisions"]]),
+        "variations": per_variation(records),
     }
+
+
+def per_variation(records: list[dict]) -> dict[str, dict]:
+    """Success per variation (keys: the variation's index as text, as JSON keeps it); journals of older
+    rvt2 have no variations: theirs is 0, the only one."""
+    out = {}
+    for v in sorted({r.get("variation", 0) for r in records}):
+        mine = [r for r in records if r.get("variation", 0) == v]
+        wins = sum(r["success"] for r in mine)
+        out[str(v)] = {"episodes": len(mine), "successes": wins, "success_rate": wins / len(mine),
+                       "wrong": sum(r.get("wrong") is not None for r in mine)}
+    return out
 
 
 def build_report(records: list[dict], meta: dict) -> dict:
@@ -127,6 +141,15 @@ def _is_insertion(task: str) -> bool:
         return False
 
 
+def _values(task: str, variation: int) -> str:
+    """A variation's placeholder values, e.g. "color=pink" ("-" for a task this rvt2 does not know)."""
+    try:
+        values = get_task(task).variation_values(variation)
+    except (UserError, IndexError):
+        return "-"
+    return ", ".join(f"{k}={v}" for k, v in sorted(values.items())) or "-"
+
+
 def _mm(stats: dict) -> str:
     return "-" if stats["median"] is None else f"{stats['median']:.2f} / {stats['p95']:.2f}"
 
@@ -139,6 +162,10 @@ def markdown(report: dict) -> str:
     lines = [f"# Evaluation: {report.get('checkpoint') or 'oracle only'}", "",
              f"Seeds from {report['seed']}, {report['episodes_per_task']} episodes per task, keyframe budget "
              f"{report['keyframe_budget']}, control steps up to {report.get('step_budget_scale', 1):g} x each task's max_steps."]
+    if report.get("paraphrases"):
+        lines += ["", "Instructions: each task's held-out paraphrases (never seen in training)."]
+    if report.get("variations", "all") != "all":
+        lines += ["", f"Variations: {report['variations']} only."]
     if report.get("untrained_tasks"):
         lines += ["", f"Not in the checkpoint's training set (a generalisation test): {', '.join(report['untrained_tasks'])}."]
     lines += ["", head, "|" + "---|" * (4 * len(sources) + 3)]
@@ -174,6 +201,17 @@ def markdown(report: dict) -> str:
     elif searches:
         lines += ["", "Insertion search (rvt2cli.eval.search): insertions that stopped at a face and then found the hole, "
                   "of those searched: " + "; ".join(searches) + "."]
+    varied = {task: per for task, per in report["tasks"].items()
+              if any(len(r.get("variations", {})) > 1 for r in per.values())}
+    if varied:
+        lines += ["", "Success per variation (tasks with several; wrong: the episode ended with another variation's "
+                  "object taken or target reached):", "", "| task | source | variation | values | success | wrong |",
+                  "|---|---|---|---|---|---|"]
+        for task, per in varied.items():
+            for s in sources:
+                for v, r in per.get(s, {}).get("variations", {}).items():
+                    lines.append(f"| {task} | {s} | {v} | {_values(task, int(v))} | {r['successes']}/{r['episodes']} "
+                                 f"({r['success_rate']:.0%}) | {r['wrong']} |")
     lines += ["", "Why episodes failed (rvt2cli.eval.taxonomy), per task and source; for insertion tasks the "
               "median gap to success, mm, of the failed episodes' closest approach with the object in hand:", "",
               "| task | source | " + " | ".join(REASONS) + " | gap mm | unreached per episode |",

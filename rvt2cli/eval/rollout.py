@@ -21,7 +21,7 @@ from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.eval.executor import Executor, Reach, StepBudgetExhausted
 from rvt2cli.eval.options import MAX_REPLANS
 from rvt2cli.eval.search import InsertionSearch
-from rvt2cli.record.scene import capture_cameras, held_objects, segmentation_ids
+from rvt2cli.record.scene import capture_cameras, held_objects, segmentation_ids, set_variation
 from rvt2cli.runtime import seed_everything
 from rvt2cli.tasks import Task
 
@@ -56,6 +56,8 @@ class Outcome:
     task_steps: int = 0     # the task's own max_steps (the budget at --step-budget-scale 1)
     control_hz: float = 20.0
     instruction: str = ""
+    variation: int = 0
+    wrong: str | None = None  # "wrong_object" / "wrong_target": what the task's check says went to another variation's
     error: str | None = None
     video: list[np.ndarray] = field(default_factory=list, repr=False)
 
@@ -95,6 +97,15 @@ def insertion_gap_mm(env, info: dict) -> float | None:
     return None
 
 
+def wrong_choice(info: dict) -> str | None:
+    """"wrong_object" or "wrong_target" where the task's check (`info`: its `evaluate()`) says the gripper
+    took, or the goal was reached by, what another variation asks for; None where it does not say so."""
+    for kind in ("wrong_object", "wrong_target"):
+        if kind in info and bool(info[kind].item()):
+            return kind
+    return None
+
+
 def _collision_points(env, frames, segmentation, bounds) -> np.ndarray:
     """The scene cloud for the planner: without the robot, and without what it holds (it moves with it)."""
     drop = segmentation_ids(env, held_objects(env), include_robot=True)
@@ -105,15 +116,17 @@ def _collision_points(env, frames, segmentation, bounds) -> np.ndarray:
 
 def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction: str, keyframe_budget: int = 25,
                 step_budget: int | None = None, video_every: int = 0, max_replans: int = MAX_REPLANS,
-                search: bool = True) -> Outcome:
+                search: bool = True, variation: int = 0) -> Outcome:
     """`search`: search for the hole where an insertion stops at a face (on tasks that give a pitch)."""
     seed_everything(seed)
-    source.reset(task, seed, instruction)  # first: the oracle may run the expert on this seed
+    set_variation(env, variation)
+    source.reset(task, seed, instruction)  # first: the oracle may run the expert on this seed (and variation)
     seed_everything(seed)
+    set_variation(env, variation)  # whatever the source did to the scene
     env.reset(seed=seed)
     executor = Executor(env, step_budget or task.max_steps, task.planner_speed, task.gripper_close,
                         search=InsertionSearch.for_task(task) if search else None)
-    outcome = Outcome(task=task.name, seed=seed, success=False, failure=None, instruction=instruction,
+    outcome = Outcome(task=task.name, seed=seed, success=False, failure=None, instruction=instruction, variation=variation,
                       step_budget=executor.step_budget, task_steps=task.max_steps,
                       control_hz=float(env.unwrapped.control_freq))
     if video_every:
@@ -153,6 +166,7 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
         outcome.success = bool(env.unwrapped.evaluate()["success"].item())
     outcome.control_steps = executor.steps
     if not outcome.success:
+        outcome.wrong = wrong_choice(env.unwrapped.evaluate())
         if stuck or any(not s.reached for s in outcome.steps):
             outcome.failure = "planning_failure"
         elif len(outcome.steps) >= keyframe_budget or executor.steps >= executor.step_budget:

@@ -24,7 +24,7 @@ from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
 from rvt2cli.eval.search import InsertionSearch
 from rvt2cli.runtime import end_with_parent
-from rvt2cli.tasks import get_task
+from rvt2cli.tasks import episode_variation, get_task
 
 
 @dataclass(frozen=True)
@@ -32,6 +32,7 @@ class Job:
     source: str   # "policy" | "oracle"
     task: str
     seed: int
+    variation: int = 0
 
 
 @dataclass
@@ -74,7 +75,7 @@ class _Worker:
 
         task = get_task(job.task)
         env = self.env(task)
-        instruction = self.opts.instruction or task.instruction(job.seed)[0]
+        instruction = self.opts.instruction or task.instruction(job.seed, job.variation, self.opts.paraphrases)[0]
         if job.source == "policy":
             source = self.policy
         else:
@@ -83,12 +84,12 @@ class _Worker:
             return run_episode(env, task, job.seed, source, instruction, self.opts.keyframe_budget,
                                step_budget=round(task.max_steps * self.opts.step_budget_scale),
                                video_every=2 if self.opts.video else 0, max_replans=self.opts.max_replans,
-                               search=self.opts.insertion_search)
+                               search=self.opts.insertion_search, variation=job.variation)
         except UserError:
             raise
         except Exception as e:  # noqa: BLE001 - a simulator crash costs this episode, not the run
             return Outcome(task=task.name, seed=job.seed, success=False, failure="error", instruction=instruction,
-                           error=f"{type(e).__name__}: {e}")
+                           variation=job.variation, error=f"{type(e).__name__}: {e}")
 
 
 _worker: _Worker | None = None
@@ -127,20 +128,32 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict,
     tasks = list(opts.tasks) or checkpoint_tasks or sorted({t for t, _ in demos})
     if not tasks:
         raise UserError("no tasks to evaluate: give --tasks (or a checkpoint, whose training tasks are the default)")
-    for name in tasks:
-        get_task(name)
+    choices = {name: get_task(name).variation_choices(opts.variations) for name in tasks}
+    if not any(choices.values()):  # only --variations held-out leaves a task none
+        raise UserError(f"--variations {opts.variations}: none of the tasks {', '.join(tasks)} has held_out_variations "
+                        "(tasks/*.toml)")
     jobs = []
-    for name in tasks:
+    for name in [n for n in tasks if choices[n]]:
+        def job(source, seed):  # consecutive seeds take the variations in turn: even, and the same in every run
+            return Job(source, name, seed, episode_variation(seed, choices[name]))
+
         demo_seeds = sorted(seed for task, seed in demos if task == name)
         if opts.checkpoint:
-            jobs += [Job("policy", name, s) for s in range(opts.seed, opts.seed + opts.episodes)]
+            jobs += [job("policy", s) for s in range(opts.seed, opts.seed + opts.episodes)]
         if replayed is not None:
-            jobs += [Job("policy", name, s) for s in sorted(replayed.get(name, ()))
+            jobs += [job("policy", s) for s in sorted(replayed.get(name, ()))
                      if opts.seed <= s < opts.seed + opts.episodes]
-        if opts.oracle:
-            seeds = demo_seeds if demos else list(range(opts.seed, opts.seed + opts.episodes))
-            jobs += [Job("oracle", name, s) for s in seeds]
+        if opts.oracle and demos:  # a demo's keyframes solve the variation it was recorded in
+            jobs += [Job("oracle", name, s, _demo_variation(demos[(name, s)])) for s in demo_seeds]
+        elif opts.oracle:
+            jobs += [job("oracle", s) for s in range(opts.seed, opts.seed + opts.episodes)]
     return jobs
+
+
+def _demo_variation(path: str) -> int:
+    from rvt2cli.data.reader import read_episode_overview
+
+    return int(read_episode_overview(path).meta.extra.get("variation", 0))
 
 
 def untrained_tasks(opts: EvalOptions, checkpoint_tasks: list[str]) -> list[str]:
@@ -206,6 +219,7 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     def report() -> dict:
         meta = {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
                 "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
+                "paraphrases": opts.paraphrases, "variations": opts.variations,
                 "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
                 "search_grids": search_grids(sorted({job.task for job in jobs})) if opts.insertion_search else {},
                 "untrained_tasks": untrained, "seconds": time.perf_counter() - start}

@@ -13,6 +13,7 @@ from rvt2cli.model.observation import Observation, observe, proprio_vector
 from rvt2cli.model.rotation import yaw_rotate_quaternion
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.record.expert import run_expert
+from rvt2cli.record.scene import current_variation
 from rvt2cli.robot import RobotFacts
 from rvt2cli.tasks import Task
 from rvt2cli.train.augment import yaw_matrices
@@ -23,10 +24,10 @@ REPLAN_SHIFT_M = 0.03
 REPLAN_YAW_DEG = 10.0
 
 
-def expert_keyframes(env, task: Task, seed: int, params: KeyframeParams = KeyframeParams()):
-    """The scripted expert's run on `seed` (its status, and its frames, which restore the scene) and the
-    keyframes the rule finds in it, labelled as a recorded demo's are."""
-    run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+def expert_keyframes(env, task: Task, seed: int, params: KeyframeParams = KeyframeParams(), variation: int = 0):
+    """The scripted expert's run on `seed` in this variation (its status, and its frames, which restore the
+    scene) and the keyframes the rule finds in it, labelled as a recorded demo's are."""
+    run = run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation)
     frames = run.frames
     facts = RobotFacts.from_agent(env.unwrapped.agent)
     names = frames[0].state["joint_names"]
@@ -106,7 +107,8 @@ class ReplaySource(KeyframeSource):
 
 class OracleSource(KeyframeSource):
     """Ground-truth keyframes, whatever the observation: those of a recorded demo of this seed if one
-    was given, else those of the scripted expert run on the same seed (without rendering). An
+    was given, else those of the scripted expert run on the same seed, in the variation the scene is set
+    to (without rendering). An
     unreachable keyframe has no alternative: the oracle moves on to its next one."""
 
     def __init__(self, env, demos: dict[tuple[str, int], str] | None = None, params: KeyframeParams = KeyframeParams()):
@@ -117,7 +119,7 @@ class OracleSource(KeyframeSource):
         if demo is not None:
             ep = read_episode(demo)
             return list((ep.keyframes or annotate(ep, self.params).keyframes).keyframes)
-        return expert_keyframes(self.env, task, seed, self.params)[1]
+        return expert_keyframes(self.env, task, seed, self.params, current_variation(self.env))[1]
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
         self.queue = self.keyframes(task, seed)  # runs the expert, which resets the scene itself

@@ -2,6 +2,8 @@
 
 The reasons, in the order they are tested (the first that applies names the failure):
 - `error`: the simulator raised.
+- `wrong_object`, `wrong_target`: the episode ended with the gripper on, or the goal reached by, what
+  another variation asks for (the task's `evaluate()` says so, where it can tell).
 - `unreachable_no_ik`, `unreachable_no_path`: the source's keyframes could not be reached, re-prediction
   after re-prediction (`Reach.why`): no arm pose within the executor's slack, or no plan to one.
 - `grasp_lost`: an object was held after some keyframe and is no longer held, the gripper still closed.
@@ -17,7 +19,7 @@ For every task:
 - `source_stopped`: the source had no keyframe left (the oracle at the end of its demo).
 """
 
-REASONS = ("error", "unreachable_no_ik", "unreachable_no_path", "grasp_lost", "no_insertion_attempt",
+REASONS = ("error", "wrong_object", "wrong_target", "unreachable_no_ik", "unreachable_no_path", "grasp_lost", "no_insertion_attempt",
            "collision_flag_contrary", "insertion_short", "budget_spent", "source_stopped")
 NEAR_GOAL_MM = 30.0  # a held object this close to success counts as brought to the goal
 
@@ -32,6 +34,8 @@ def failure_reason(record: dict, insertion: bool) -> str | None:
         return None
     if record["failure"] == "error":
         return "error"
+    if record.get("wrong"):
+        return record["wrong"]
     steps = record["steps"]
     if record["failure"] == "planning_failure":
         unreached = [s for s in steps if not s["reached"]]

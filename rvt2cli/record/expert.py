@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import gymnasium as gym
 import numpy as np
 
-from rvt2cli.record.scene import robot_contacts, robot_state, sim_state
+from rvt2cli.record.scene import robot_contacts, robot_state, set_variation, sim_state
 from rvt2cli.runtime import seed_everything
 
 
@@ -31,6 +31,7 @@ class Frame:
 @dataclass
 class ExpertRun:
     seed: int
+    variation: int = 0
     frames: list[Frame] = field(default_factory=list)
     success: bool = False
     status: str = "failed"    # success | failed | planning_failed | too_long
@@ -70,11 +71,12 @@ def load_expert(spec: str):
     return getattr(importlib.import_module(module), function)
 
 
-def run_expert(env, expert_spec: str, seed: int, max_frames: int) -> ExpertRun:
-    """Reset the scene with `seed` and let the expert solve it, recording every frame."""
+def run_expert(env, expert_spec: str, seed: int, max_frames: int, variation: int = 0) -> ExpertRun:
+    """Reset the scene with `seed` in this variation and let the expert solve it, recording every frame."""
     seed_everything(seed)
+    set_variation(env, variation)  # the expert resets the scene itself
     recorder = RecordingWrapper(env, max_frames)
-    run = ExpertRun(seed=seed)
+    run = ExpertRun(seed=seed, variation=variation)
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # the experts print planner failures
             result = load_expert(expert_spec)(recorder, seed=seed)

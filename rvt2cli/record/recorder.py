@@ -3,7 +3,8 @@
 The expert runs without rendering; afterwards the scene is restored (`set_state_dict`) at the frames
 training needs and only those are rendered: frame 0, every `obs_every`-th frame and every keyframe of
 the default rule. Episodes use seeds seed, seed+1, ...; with several workers, episodes are accepted in
-seed order, so the same command always writes the same files.
+seed order, so the same command always writes the same files. A task with variations spreads its
+episodes over them: the seed picks the variation (`rvt2cli.tasks.episode_variation`).
 """
 
 import multiprocessing
@@ -24,7 +25,7 @@ from rvt2cli.record.expert import ExpertRun, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
 from rvt2cli.robot import RobotFacts
 from rvt2cli.runtime import end_with_parent
-from rvt2cli.tasks import Task, get_task
+from rvt2cli.tasks import Task, episode_variation, get_task
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class RecordOptions:
     voxel_size: float | None = None
     store_clouds: bool = False
     keep_failures: bool = False
+    variations: str = "all"   # which the episodes spread over: all, seen (not the held-out split) or one index
 
 
 @dataclass
@@ -43,6 +45,7 @@ class EpisodeResult:
     status: str
     frames: int
     seconds: float
+    variation: int = 0
     path: str | None = None
     size_bytes: int = 0
     error: str | None = None
@@ -68,11 +71,12 @@ def observation_frames(num_frames: int, gripper_open, arm_velocities, obs_every:
 
 def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOptions) -> Path:
     control_hz = float(env.unwrapped.control_freq)
-    instruction, template_index = task.instruction(run.seed)
+    instruction, template_index = task.instruction(run.seed, run.variation)
     cameras = list(env.rvt2_cameras)
     robot = RobotFacts.from_agent(env.unwrapped.agent)
     with EpisodeWriter(path, control_hz) as writer:
-        writer.write_instruction(instruction, task.name, template_index, dict(task.variables))
+        writer.write_instruction(instruction, task.name, template_index, task.variation_values(run.variation),
+                                 variation_index=run.variation)
         for t, frame in enumerate(run.frames):
             writer.write_frame(t, joint_names=frame.state["joint_names"], joint_positions=frame.state["joint_positions"],
                                joint_velocities=frame.state["joint_velocities"], gripper_width=frame.state["gripper_width"],
@@ -91,18 +95,19 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
             instruction=instruction, obs_frames=writer.obs_frames,
             versions=software_versions("mani-skill", "sapien", "mplib", "numpy"),
             voxel_size=options.voxel_size, extra={"image_size": int(options.image_size or task.image_size), "status": run.status,
-                                                  "robot": robot.to_json()},
+                                                  "robot": robot.to_json(), "variation": run.variation},
         )
         return writer.finish(meta)
 
 
 def record_episode(env, task: Task, seed: int, out_dir: Path, options: RecordOptions) -> EpisodeResult:
     start = time.perf_counter()
+    variation = episode_variation(seed, task.variation_choices(options.variations))
     try:
-        run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+        run = run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation)
     except Exception as e:  # noqa: BLE001 - a simulator or expert crash costs one episode, not the run
-        return EpisodeResult(seed, "error", 0, time.perf_counter() - start, error=f"{type(e).__name__}: {e}")
-    result = EpisodeResult(seed, run.status, len(run.frames), 0.0)
+        return EpisodeResult(seed, "error", 0, time.perf_counter() - start, variation, error=f"{type(e).__name__}: {e}")
+    result = EpisodeResult(seed, run.status, len(run.frames), 0.0, variation)
     if run.success or options.keep_failures:
         path = write_episode(env, task, run, episode_path(out_dir, task, seed), options)
         result.path, result.size_bytes = str(path), path.stat().st_size
@@ -148,6 +153,12 @@ class RecordSummary:
     def expert_success_rate(self) -> float:
         return len(self.successes) / max(1, len(self.results))
 
+    def successes_per_variation(self) -> dict[int, int]:
+        out: dict[int, int] = {}
+        for r in self.successes:
+            out[r.variation] = out.get(r.variation, 0) + 1
+        return dict(sorted(out.items()))
+
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
         for r in self.results:
@@ -160,6 +171,7 @@ def record(task_name: str, episodes: int, out_dir: str | Path, seed: int = 0, wo
     """Record `episodes` successful episodes (seeds from `seed` upwards). `on_result(result, summary)`
     is called for every attempt in seed order (the CLI's progress bar)."""
     task = get_task(task_name)
+    task.variation_choices(options.variations)  # an unknown variation is the user's error, before any simulator starts
     out_dir = ensure_folder(out_dir)
     max_attempts = max_attempts or 10 * episodes + 10
     summary = RecordSummary(task=task.name, requested=episodes)

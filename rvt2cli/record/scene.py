@@ -71,6 +71,20 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
     return env
 
 
+def set_variation(env, variation: int) -> None:
+    """Make the next reset lay out this variation (rvt2-18's environments); ManiSkill's own have only 0."""
+    scene = env.unwrapped
+    if hasattr(scene, "num_variations"):
+        scene.variation = variation
+    elif variation != 0:
+        raise ValueError(f"{type(scene).__name__} has one variation, not {variation + 1}")
+
+
+def current_variation(env) -> int:
+    """The variation the scene lays out at its next reset (0 for ManiSkill's own environments)."""
+    return int(getattr(env.unwrapped, "variation", 0))
+
+
 def _wxyz_to_xyzw(q) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64)
     return np.array([q[1], q[2], q[3], q[0]])

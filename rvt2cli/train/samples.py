@@ -102,14 +102,18 @@ class SampleSet:
 
 
 def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True,
-                 keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None) -> SampleSet:
-    """Read every episode's samples. Refuses, in one line, files without keyframes."""
+                 keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None,
+                 tasks: list[str] | None = None) -> SampleSet:
+    """Read every episode's samples (of these tasks only, if given). Refuses, in one line, files without
+    keyframes."""
     from rvt2cli.data import topics
     from rvt2cli.data.reader import read_episode_overview
 
     unannotated, failures, usable = [], [], []
     for path in paths:
         overview = read_episode_overview(path)
+        if tasks is not None and overview.meta.task not in tasks:
+            continue
         if not overview.meta.success and not include_failures:
             failures.append(path)
         elif topics.KEYFRAMES not in overview.topics:
@@ -124,7 +128,8 @@ def load_samples(paths: list[Path], include_failures: bool = False, progress: bo
     for path in tqdm(usable, desc="load samples", unit="ep", disable=not progress):
         samples.add_episode(path, keyframe_starts_only, cameras)
     if len(samples) == 0:
-        raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else ""))
+        raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else "")
+                        + (f" of the tasks {', '.join(tasks)}" if tasks is not None else ""))
     samples.skipped_failures = len(failures)
     return samples
 

@@ -37,7 +37,7 @@ from rvt2cli.train.options import TrainOptions, conflicts
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
 from rvt2cli.train.samples import SampleSet, load_samples, select_samples
 from rvt2cli.train.step import StepResult, TrainStep
-from rvt2cli.tasks import aim_offsets
+from rvt2cli.tasks import aim_offsets, tasks_of_set
 
 __all__ = ["TrainOptions", "TrainResult", "train"]
 
@@ -137,21 +137,27 @@ def model_config(opts: TrainOptions) -> ModelConfig:
 # --- data --------------------------------------------------------------------------------------------
 
 def load_training_data(data: list[str], include_failures: bool, progress: bool, keyframe_starts_only: bool = False,
-                       cameras: tuple[str, ...] | None = None) -> tuple[SampleSet, dict[str, torch.Tensor]]:
+                       cameras: tuple[str, ...] | None = None, task_set: str | None = None
+                       ) -> tuple[SampleSet, dict[str, torch.Tensor]]:
     """Samples from one sample cache (with its instruction embeddings) or from episode files (embeddings
-    still to compute; with `keyframe_starts_only`, the other samples' clouds are not even fused)."""
+    still to compute; with `keyframe_starts_only`, the other samples' clouds are not even fused; with
+    `task_set`, only the episodes of that set's tasks)."""
+    tasks = tasks_of_set(task_set) if task_set else None
     caches = [d for d in data if is_sample_cache(d)]
     if caches:
         if len(data) > 1:
             raise UserError(f"--data: give one sample cache ({caches[0]}) or episode files/folders, not both")
         samples, embeddings = load_sample_cache(caches[0])
+        if tasks is not None and not set(samples.tasks) <= set(tasks):
+            raise UserError(f"{caches[0]}: holds tasks outside --task-set {task_set} "
+                            f"({', '.join(sorted(set(samples.tasks) - set(tasks)))}); pack a cache of the set's episodes")
         if cameras and any(list(cameras) != r["cameras"] for r in samples.rigs.values()):
             raise UserError(f"{caches[0]}: its clouds were fused from other cameras than --cameras {','.join(cameras)}; "
                             f"pack the cache with `rvt2 pack-samples --cameras {','.join(cameras)}`")
         return samples, embeddings
     paths = episode_paths(data)
     return load_samples(paths, include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only,
-                        cameras=cameras), {}
+                        cameras=cameras, tasks=tasks), {}
 
 
 def split_episodes(samples, val_episodes: int, selected: list[int] | None = None) -> tuple[list[int], list[int]]:
@@ -182,7 +188,8 @@ class TrainingData:
 
 
 def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resume: Checkpoint | None, say) -> TrainingData:
-    samples, known = load_training_data(opts.data, opts.include_failures, progress, opts.keyframe_starts_only, opts.cameras)
+    samples, known = load_training_data(opts.data, opts.include_failures, progress, opts.keyframe_starts_only, opts.cameras,
+                                        opts.task_set)
     selected = select_samples(samples, opts.episodes_per_task, opts.keyframe_starts_only)
     train_idx, val_idx = split_episodes(samples, opts.val_episodes, selected)
     if not train_idx:

@@ -1,0 +1,126 @@
+"""Write docs/TASKS.md from the tasks' TOML files: per task a picture of its scene (the front camera after a
+reset), its variations, instructions, held-out paraphrases, success condition (from its environment's
+docstring) and the expert's and the oracle's success as `benchmarks/oracle_bench.py --json` measured them.
+
+    python scripts/task_docs.py [--tasks a,b | --task-set rlbench18] [--results oracle.json ...]
+                                [--out docs/TASKS.md] [--images docs/img/tasks] [--seed 0]
+"""
+
+import argparse
+import inspect
+import json
+import os
+import textwrap
+from pathlib import Path
+
+IMAGE_SIZE = 192  # px: a small picture, enough to tell the objects and their colours apart
+
+
+def success_condition(env_class) -> str:
+    """ManiSkill's docstrings list it under **Success Conditions:**; rvt2-18's environments say it in theirs."""
+    doc = inspect.cleandoc(env_class.__doc__ or "")
+    if "**Success Conditions:**" in doc:
+        section = doc.split("**Success Conditions:**", 1)[1].strip().split("\n\n", 1)[0]
+        items = [" ".join(item.split()) for item in ("\n" + section).split("\n- ") if item.strip()]
+        return "; ".join(items)
+    return " ".join(doc.split()) or "(the environment's docstring does not say)"
+
+
+def save_picture(task, path: Path, seed: int):
+    """Save the front camera's picture of the task's scene; returns the task's environment class."""
+    from PIL import Image
+
+    from rvt2cli.record.scene import capture_cameras, make_env, set_variation
+
+    env = make_env(task, cameras=("front",), image_size=IMAGE_SIZE)
+    try:
+        set_variation(env, 0)
+        env.reset(seed=seed)
+        # a palette of 128 colours keeps the file small (a few kB) and the objects' colours apart
+        Image.fromarray(capture_cameras(env)["front"].rgb).quantize(128).save(path, optimize=True)
+        return type(env.unwrapped).__bases__[0]  # make_env's scene subclasses the task's environment
+    finally:
+        env.close()
+
+
+def measured(results: list[dict]) -> dict[str, list[str]]:
+    """Per task, one line per benchmark run that measured it."""
+    out: dict[str, list[str]] = {}
+    for result in results:
+        m = result.get("machine", {})
+        machine = f"{m.get('cores', '?')}-core {m.get('cpu', 'unknown CPU')}, Python {m.get('python', '?')}"
+        for row in result["tasks"]:
+            seeds = f"seeds {row['first_seed']}-{row['first_seed'] + row['seeds'] - 1}"
+            line = f"expert {row['expert']:.0%}, oracle {row['oracle']:.0%} ({seeds}; {machine})"
+            if len(row.get("expert_per_variation", {})) > 1:
+                line += "; per variation (expert / oracle): " + ", ".join(
+                    f"{v}: {row['expert_per_variation'][v]:.0%} / {row['oracle_per_variation'].get(v, 0):.0%}"
+                    for v in row["expert_per_variation"])
+            out.setdefault(row["task"], []).append(line)
+    return out
+
+
+def section(task, env_class, picture: str, success: list[str]) -> str:
+    lines = [f"## {task.name}", "", f"![{task.name}]({picture})", "",
+             f"Environment `{task.env_id}`, expert `{task.expert}`, {task.max_steps} control steps at most"
+             + (f"; task sets: {', '.join(task.task_sets)}" if task.task_sets else "") + ".", "",
+             f"**Success:** {success_condition(env_class)}", ""]
+    if task.variations:
+        held = set(task.held_out_variations)
+        lines += [f"**Variations ({task.num_variations}):**", "", "| variation | values | instruction (first template) |",
+                  "|---|---|---|"]
+        for v in range(task.num_variations):
+            values = ", ".join(f"{k}={x}" for k, x in sorted(task.variation_values(v).items()))
+            mark = " (held out)" if v in held else ""
+            lines.append(f"| {v}{mark} | {values} | {task.instructions[0].format(**task.variation_values(v))} |")
+        lines.append("")
+    else:
+        lines += ["**Variations:** one.", ""]
+    lines += ["**Instructions** (templates):", ""] + [f"- {t}" for t in task.instructions] + [""]
+    if task.paraphrases:
+        lines += ["**Held-out paraphrases** (`rvt2 eval --paraphrases`; never in training):", ""]
+        lines += [f"- {t}" for t in task.paraphrases] + [""]
+    lines += ["**Measured:** " + ("; ".join(success) if success else "not yet (run `benchmarks/oracle_bench.py --json`)."), ""]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    from rvt2cli.tasks import all_tasks, tasks_of_set
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", help="comma-separated (default: every task)")
+    parser.add_argument("--task-set")
+    parser.add_argument("--results", nargs="*", default=[], help="JSON files of benchmarks/oracle_bench.py --json")
+    parser.add_argument("--out", default="docs/TASKS.md")
+    parser.add_argument("--images", default="docs/img/tasks")
+    parser.add_argument("--seed", type=int, default=0, help="the seed of every picture's scene (variation 0)")
+    args = parser.parse_args()
+    names = args.tasks.split(",") if args.tasks else tasks_of_set(args.task_set) if args.task_set else list(all_tasks())
+    results = measured([json.loads(Path(p).read_text()) for p in args.results])
+    out, images = Path(args.out), Path(args.images)
+    images.mkdir(parents=True, exist_ok=True)
+    tasks = [all_tasks()[n] for n in names]
+    parts = [textwrap.dedent(f"""\
+        # Tasks
+
+        Written by `scripts/task_docs.py` from `tasks/*.toml`; do not edit by hand. Each picture is the front
+        camera ({IMAGE_SIZE} px) after a reset with seed {args.seed}, in variation 0. A task with variations lays out
+        the same scene for a seed in every variation: only the instruction and the success check differ.
+
+        | task | environment | variations | task sets |
+        |---|---|---|---|
+        """)]
+    parts[0] += "\n".join(f"| [{t.name}](#{t.name}) | {t.env_id} | {t.num_variations} | {', '.join(t.task_sets) or '-'} |"
+                          for t in tasks) + "\n"
+    for task in tasks:
+        picture = images / f"{task.name}.png"
+        env_class = save_picture(task, picture, args.seed)
+        parts.append(section(task, env_class, os.path.relpath(picture, out.parent),
+                             results.get(task.name, [])))
+        print(f"{task.name}: {picture}", flush=True)
+    out.write_text("\n".join(parts))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,233 @@
+"""Variations end to end: tasks whose variations only the instruction tells apart, recorded, read back,
+evaluated per variation, in the real simulator on real MCAP files (slide_block_to_color_target: 4)."""
+
+import json
+
+import pytest
+
+from conftest import assert_one_line_error
+from rvt2cli.data import read_episode, schemas
+from rvt2cli.errors import UserError
+from rvt2cli.eval.options import EvalOptions
+from rvt2cli.eval.rollout import KeyframeSource, run_episode
+from rvt2cli.eval.runner import evaluate
+from rvt2cli.eval.sources import expert_keyframes
+from rvt2cli.eval.taxonomy import failure_reason
+from rvt2cli.record.expert import run_expert
+from rvt2cli.record.recorder import RecordOptions, record
+from rvt2cli.record.scene import make_env, set_variation, sim_state
+from rvt2cli.tasks import _parse, all_tasks, episode_variation, get_task, task_sets, tasks_of_set
+
+pytestmark = pytest.mark.sim
+TASK = "slide_block_to_color_target"
+SMALL = RecordOptions(cameras=("front",), image_size=32, obs_every=50)
+VARIED = [name for name, task in all_tasks().items() if task.num_variations > 1]
+
+
+@pytest.fixture(scope="module")
+def slide_env():
+    env = make_env(get_task(TASK), cameras=("front",), image_size=32)
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def slide_demos(tmp_path_factory):
+    """Four recorded episodes, seeds 0-3: one per variation."""
+    out = tmp_path_factory.mktemp("slide")
+    summary = record(TASK, 4, out, seed=0, options=SMALL)
+    assert summary.counts() == {"success": 4}
+    return out
+
+
+def initial_state(env, seed: int, variation: int) -> dict:
+    set_variation(env, variation)
+    env.reset(seed=seed)
+    return sim_state(env)
+
+
+@pytest.mark.parametrize("name", VARIED)
+def test_a_seed_lays_out_the_same_scene_in_every_variation(name):
+    """Only the instruction tells variations apart: a policy that ignores it cannot beat chance."""
+    task = get_task(name)
+    env = make_env(task, cameras=("front",), image_size=32)
+    try:
+        assert env.unwrapped.num_variations == task.num_variations, "the TOML's [[variations]] and the env disagree"
+        first = initial_state(env, 7, 0)
+        for variation in (1, task.num_variations - 1):
+            assert initial_state(env, 7, variation) == first
+        assert initial_state(env, 8, 0) != first  # the seed, not the variation, lays out the scene
+    finally:
+        env.close()
+
+
+def test_slide_block_expert_succeeds_and_the_end_state_fails_the_other_variations(slide_env):
+    task = get_task(TASK)
+    run = run_expert(slide_env, task.expert, seed=5, max_frames=task.max_steps, variation=2)
+    assert run.status == "success" and run.variation == 2
+    scene = slide_env.unwrapped
+    for other in (0, 1, 3):
+        scene.variation = other  # the same end state, judged as another variation's episode
+        info = scene.evaluate()
+        assert not info["success"].item() and info["wrong_target"].item()
+    scene.variation = 2
+    assert scene.evaluate()["success"].item() and not scene.evaluate()["wrong_target"].item()
+
+
+def test_slide_block_reset_refuses_a_variation_it_does_not_have(slide_env):
+    with pytest.raises(ValueError, match="variation 4"):
+        slide_env.reset(seed=0, options={"variation": 4})
+    slide_env.unwrapped.variation = 0
+
+
+def test_recording_spreads_episodes_over_variations_and_stores_them(slide_demos, cli):
+    task = get_task(TASK)
+    for seed in range(4):
+        ep = read_episode(slide_demos / f"{TASK}_{seed:04d}.mcap")
+        assert ep.variation_index == seed and ep.meta.extra["variation"] == seed
+        colour = task.variations[seed]["color"]
+        assert ep.instruction["variation"] == {"color": colour} and colour in ep.instruction["text"]
+        assert ep.instruction["text"] == task.instruction(seed, seed)[0]
+        assert ep.format_version == schemas.FORMAT_VERSION
+    r = cli("info", "--json", slide_demos / f"{TASK}_0002.mcap")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(r.stdout)[0]
+    assert info["variation"] == 2 and info["variation_values"] == {"color": "pink"}
+    assert "variation    2  color=pink" in cli("info", slide_demos / f"{TASK}_0002.mcap").stdout
+
+
+def test_training_samples_carry_their_own_variations_instruction(slide_demos):
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.keyframes.extract import extract_file
+    from rvt2cli.train.samples import load_samples
+
+    paths = episode_paths([str(slide_demos)])
+    for path in paths:
+        extract_file(path)
+    samples = load_samples(paths, progress=False, keyframe_starts_only=True)
+    for i in range(len(samples)):
+        seed = read_episode(samples.episodes[samples.episode_index[i]]).meta.seed
+        assert samples.instructions[samples.instruction_index[i]] == get_task(TASK).instruction(seed, seed)[0]
+    assert len(set(samples.instruction_index)) == 4
+
+
+def test_record_one_variation(tmp_path):
+    summary = record(TASK, 2, tmp_path, seed=10, options=RecordOptions(**{**SMALL.__dict__, "variations": "3"}))
+    assert summary.successes_per_variation() == {3: 2}
+    assert [read_episode(p).variation_index for p in sorted(tmp_path.glob("*.mcap"))] == [3, 3]
+
+
+def test_an_episode_file_without_a_variation_reads_as_the_only_one(tmp_path):
+    """Files of format 1.1 and older store no variation_index."""
+    from episode_factory import random_episode
+
+    random_episode(tmp_path / "old.mcap", variation_index=None)
+    ep = read_episode(tmp_path / "old.mcap")
+    assert "variation_index" not in ep.instruction and ep.variation_index == 0
+    random_episode(tmp_path / "new.mcap", variation_index=3)
+    assert read_episode(tmp_path / "new.mcap").variation_index == 3
+
+
+def test_variation_choices_and_the_held_out_split():
+    task = _parse("""
+name = "t"
+env_id = "X"
+expert = "m:f"
+max_steps = 10
+instructions = ["stack {a} on {b}"]
+paraphrases = ["put {a} onto {b}"]
+held_out_variations = [1]
+[[variations]]
+a = "red"
+b = "blue"
+[[variations]]
+a = "blue"
+b = "red"
+[[variations]]
+a = "green"
+b = "red"
+""", "tasks/t.toml")
+    assert task.variation_choices() == (0, 1, 2) and task.variation_choices("seen") == (0, 2)
+    assert task.variation_choices("held-out") == (1,) and task.variation_choices("2") == (2,)
+    assert get_task(TASK).variation_choices("held-out") == ()  # no split: eval --variations held-out skips it
+    with pytest.raises(UserError, match="no variation 3"):
+        task.variation_choices("3")
+    assert [episode_variation(s, (0, 2)) for s in range(10, 14)] == [0, 2, 0, 2]
+    assert task.instruction(0, 1) == ("stack blue on red", 0)
+    assert task.instruction(0, 1, paraphrase=True) == ("put blue onto red", 0)
+    assert task.all_paraphrases() == ["put red onto blue", "put blue onto red", "put green onto red"]
+    with pytest.raises(UserError, match="held_out_variations"):
+        _parse('name = "t"\nenv_id = "X"\nexpert = "m:f"\nmax_steps = 10\ninstructions = ["x"]\n'
+               'held_out_variations = [0]', "tasks/t.toml")
+
+
+def test_task_sets():
+    assert TASK in tasks_of_set("rlbench18")
+    assert {"insert_peg", "push_cube", "stack_pyramid"} <= set(tasks_of_set("maniskill9"))
+    assert len(task_sets()["maniskill9"]) == 9
+    with pytest.raises(UserError, match="unknown task set 'nope'"):
+        tasks_of_set("nope")
+
+
+def test_cli_lists_variations_and_refuses_unknown_sets_and_variations(cli, tmp_path):
+    r = cli("record", "--list-tasks")
+    assert r.returncode == 0
+    line = next(line for line in r.stdout.splitlines() if line.startswith(TASK))
+    assert "4 variations" in line and "rlbench18" in line
+    assert_one_line_error(cli("record", "--task-set", "nope", "--out", tmp_path), "unknown task set 'nope'")
+    assert_one_line_error(cli("record", "--task", TASK, "--variation", "4", "--out", tmp_path), "no variation 4")
+    assert_one_line_error(cli("eval", "--oracle", "--task-set", "nope", "--out", tmp_path), "unknown task set")
+    assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--variations", "9", "--out", tmp_path), "no variation 9")
+    assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--variations", "held-out", "--out", tmp_path),
+                          "has held_out_variations")
+
+
+def test_oracle_eval_reports_per_variation_with_paraphrases(tmp_path):
+    task = get_task(TASK)
+    result = evaluate(EvalOptions(checkpoint=None, tasks=(TASK,), episodes=4, seed=10_000, oracle=True, paraphrases=True,
+                                  out=str(tmp_path)))
+    episodes = result.report["episodes"]
+    assert sorted(e["variation"] for e in episodes) == [0, 1, 2, 3]
+    for e in episodes:
+        assert e["instruction"] == task.instruction(e["seed"], e["variation"], paraphrase=True)[0]
+        assert e["instruction"] in task.all_paraphrases()
+    per = result.report["tasks"][TASK]["oracle"]["variations"]
+    assert set(per) == {"0", "1", "2", "3"} and all(v["episodes"] == 1 for v in per.values())
+    assert sum(v["successes"] for v in per.values()) == result.report["tasks"][TASK]["oracle"]["successes"]
+    markdown = (tmp_path / "eval.md").read_text()
+    assert "Success per variation" in markdown and "color=yellow" in markdown and "held-out paraphrases" in markdown
+
+
+class OtherVariationsKeyframes(KeyframeSource):
+    """The expert's keyframes of another variation than the episode's: a policy that ignored the instruction."""
+
+    def __init__(self, env, variation):
+        self.env, self.variation = env, variation
+
+    def reset(self, task, seed, instruction):
+        self.queue = expert_keyframes(self.env, task, seed, variation=self.variation)[1]
+
+    def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry=0):
+        return self.queue[keyframes_done] if keyframes_done < len(self.queue) else None
+
+
+def test_a_push_onto_another_variations_target_fails_as_wrong_target(slide_env):
+    from rvt2cli.eval.report import episode_record
+
+    task = get_task(TASK)
+    outcome = run_episode(slide_env, task, 10_001, OtherVariationsKeyframes(slide_env, 0), "slide the block to blue target",
+                          variation=1)
+    assert not outcome.success and outcome.variation == 1 and outcome.wrong == "wrong_target"
+    assert failure_reason(episode_record("policy", outcome), insertion=False) == "wrong_target"
+
+
+def test_record_cli_records_one_variation(cli, tmp_path):
+    r = cli("record", "--task", TASK, "--variation", "2", "--episodes", "1", "--seed", "3", "--out", tmp_path,
+            "--cameras", "front", "--image-size", "32", "--obs-every", "50", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "episodes per variation: 2: 1" in r.stdout
+    assert read_episode(tmp_path / f"{TASK}_0003.mcap").variation_index == 2
+    assert_one_line_error(cli("record", "--task", TASK, "--variation", "1", "--hold-out-variations", "--out", tmp_path),
+                          "not both")
+    assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--paraphrases", "--instruction", "x", "--out", tmp_path),
+                          "not both")
