@@ -53,6 +53,7 @@ class Settings:
 
     out: Path
     rvt2: tuple[str, ...] = ("rvt2",)
+    torchrun: tuple[str, ...] = ("torchrun",)
     workers: int = 1
     gpus: int = 1
     device: str = "cuda"
@@ -118,7 +119,7 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     if batch % settings.gpus:
         raise UserError(f"--gpus {settings.gpus} does not divide the global batch {batch} of {experiment['name']}; "
                         "give a number of GPUs that divides it")
-    launch = rvt2 if settings.gpus == 1 else ["torchrun", "--standalone", "--nproc-per-node", str(settings.gpus), "-m", "rvt2cli"]
+    launch = rvt2 if settings.gpus == 1 else [*settings.torchrun, "--standalone", "--nproc-per-node", str(settings.gpus), "-m", "rvt2cli"]
     run = []
 
     def demos(phase, folder, tasks, episodes, first_seed):
@@ -207,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cuda", help="the policy's device in evaluation (default cuda)")
     parser.add_argument("--training-seeds", help="comma-separated training seeds instead of the file's (e.g. 0)")
     parser.add_argument("--rvt2", default="rvt2", help="the command that runs rvt2 (default rvt2; e.g. 'python3 -m rvt2cli')")
+    parser.add_argument("--torchrun", default="torchrun",
+                        help="the command that launches training on several GPUs (default torchrun)")
     args = parser.parse_args(argv)
     try:
         experiment = load(resolve(args.experiment))
@@ -219,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
             except ValueError:
                 raise UserError(f"--training-seeds {args.training_seeds}: give whole numbers, comma-separated") from None
         out = Path(args.out or f"data/experiments/{experiment['name']}")
-        settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), workers=args.workers, gpus=args.gpus,
+        settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), torchrun=tuple(shlex.split(args.torchrun)),
+                            workers=args.workers, gpus=args.gpus,
                             device=args.device, training_seeds=seeds)
         run = commands(experiment, settings, parse_phases(args.phase))
     except UserError as e:

@@ -15,10 +15,7 @@ EXPERIMENT_FILES = sorted(runner.EXPERIMENTS.glob("*.toml"))
 
 def rvt2_arguments(argv: list[str]) -> list[str]:
     """The arguments after the launcher: `rvt2 ...` or `torchrun ... -m rvt2cli ...`."""
-    if argv[0] == "rvt2":
-        return argv[1:]
-    assert argv[0] == "torchrun", argv
-    return argv[argv.index("rvt2cli") + 1:]
+    return argv[1:] if argv[0] == "rvt2" else argv[argv.index("rvt2cli") + 1:]
 
 
 def test_there_are_experiments():
