@@ -144,7 +144,7 @@ while [ $# -gt 0 ]; do
     ;;
   replay)  # a recorded evaluation's predicted keyframes through today's executor (REPLAY: its journal)
     t=$(clock)
-    "${RVT2[@]}" eval --replay "${REPLAY:-benchmarks/results/ddp_h200x2/eval_10000/episodes.jsonl}" \
+    "${RVT2[@]}" eval --replay "${REPLAY:?give REPLAY=JOURNAL, the episodes.jsonl of a recorded evaluation}" \
       --tasks "${REPLAY_TASKS:-insert_peg,plug_charger,lift_peg_upright}" --episodes "$EVAL_EPISODES" --seed 10000 \
       --workers "$WORKERS" --out "$W/eval_replay" --no-progress 2>&1 | tail -5
     phase replay $(( $(clock) - t ))
