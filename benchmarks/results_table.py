@@ -1,4 +1,4 @@
-"""The table and bar chart of docs/RESULTS.md, from `rvt2 eval` reports and the oracle benchmark.
+"""A results table and bar chart from `rvt2 eval` reports and the oracle benchmark.
 
     python -m benchmarks.results_table --policy "LABEL=EVAL_DIR[+EVAL_DIR...][,EVAL_DIR...]" [--policy ...] \
         (--oracle-bench oracle.json | --oracle EVAL_DIR --expert expert.json) \
