@@ -8,7 +8,7 @@ timed into OUT/phases.tsv. The phases, in order:
     record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`)
     heldout   demos on seeds training never sees, scored offline
     train     one run per training seed (torchrun when --gpus > 1, the global batch kept)
-    eval      each run closed loop on the evaluation seeds
+    eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted)
     offline   each run's precision in millimetres on the held-out demos
     oracle    the expert's own keyframes through the same executor, on the evaluation seeds
 
@@ -142,11 +142,13 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
             for seed in seeds:
+                folder = out / "evals" / f"seed{seed}"
+                resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
                                            "--episodes", str(evaluate["episodes_per_task"]),
                                            "--seed", str(evaluate.get("first_seed", 10000)), "--workers", workers,
-                                           "--device", settings.device, "--out", str(out / "evals" / f"seed{seed}")]
-                            + options(evaluate.get("options", {})) + ["--no-progress"]))
+                                           "--device", settings.device, "--out", str(folder)]
+                            + options(evaluate.get("options", {})) + resume + ["--no-progress"]))
         elif phase == "offline" and heldout:
             for seed in seeds:
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
