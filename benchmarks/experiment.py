@@ -45,6 +45,8 @@ SCHEMA = {
     "oracle": {"episodes_per_task", "first_seed"},
     "published": {"results", "raw", "machine", "notes"},
 }
+REQUIRED = {"record": "demos_per_task", "heldout": "demos_per_task", "train": "steps", "eval": "episodes_per_task",
+            "oracle": "episodes_per_task"}
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,9 @@ def load(path: Path) -> dict:
     for required in ("name", "tasks", "record", "train", "eval"):
         if required not in experiment:
             raise UserError(f"{path}: no {required!r}; every experiment file gives name, tasks, [record], [train] and [eval]")
+    for table, key in REQUIRED.items():
+        if table in experiment and key not in experiment[table]:
+            raise UserError(f"{path}: [{table}] has no {key!r}; add it")
     known = all_tasks()
     for task in experiment["tasks"] + experiment.get("heldout", {}).get("tasks", []):
         if task not in known:

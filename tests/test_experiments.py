@@ -61,6 +61,8 @@ def test_print_is_the_default_and_names_each_phase(capsys):
      "unknown key 'batch' in [train]"),
     ("name = 'x'\ntasks = ['push_cubes']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 1\n",
      "unknown task 'push_cubes'"),
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nseeds = [0]\n[eval]\nepisodes_per_task = 1\n",
+     "[train] has no 'steps'"),
     ("name = 'x'\ntasks = [\n", "not valid TOML"),
 ])
 def test_a_bad_file_is_one_line_and_exit_code_2(tmp_path, capsys, text, message):
