@@ -1,8 +1,8 @@
-"""The table and bar chart of docs/RESULTS.md, from `rvt2 eval` reports and the oracle benchmark.
+"""A results table and bar chart from `rvt2 eval` reports and the oracle benchmark.
 
     python -m benchmarks.results_table --policy "LABEL=EVAL_DIR[+EVAL_DIR...][,EVAL_DIR...]" [--policy ...] \
         (--oracle-bench oracle.json | --oracle EVAL_DIR --expert expert.json) \
-        [--previous "LABEL=results.json[#COLUMN]"] [--chart docs/results.png] [--json benchmarks/results/results.json]
+        [--previous "LABEL=results.json[#COLUMN]"] [--chart results.png] [--json results.json]
 
 EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluation over all their seeds
 (their episode records are merged and summarised by the same code `rvt2 eval` uses). Several models

@@ -20,8 +20,8 @@ from rvt2cli.robot import RobotFacts
 from rvt2cli.runtime import seed_everything
 from rvt2cli.tasks import get_task
 
-RESULTS = Path(__file__).resolve().parent.parent / "benchmarks" / "results"
-V2_JOURNAL = RESULTS / "ddp_h200x2" / "eval_10000" / "episodes.jsonl"   # a policy's 400 episodes, recorded on a GPU machine
+# a policy's 400 episodes (8 tasks, results v2), recorded on a GPU machine
+V2_JOURNAL = Path(__file__).resolve().parent / "fixtures" / "journals" / "eight_tasks_v2.jsonl"
 
 
 @pytest.fixture(scope="module")

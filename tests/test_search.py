@@ -14,11 +14,11 @@ from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.search import MAX_PROBES, RETRACT_M, InsertionSearch, across
 from rvt2cli.tasks import _parse, get_task
 
-RESULTS = Path(__file__).resolve().parent.parent / "benchmarks" / "results"
+JOURNALS = Path(__file__).resolve().parent / "fixtures" / "journals"
 # 50 insert_peg episodes of a one-task policy (results v8), recorded on a GPU machine without the search
-V8_PEG = RESULTS / "v8_h200" / "insert_peg_only" / "eval_v8_peg" / "episodes.jsonl"
+V8_PEG = JOURNALS / "insert_peg_one_task_pushed_straight.jsonl"
 # the two insertions of the 8-task model of results v11, recorded on a GPU machine with v11's search grids
-V11_INSERTIONS = RESULTS / "v11_h200" / "eight_tasks" / "eval_v11_ins" / "episodes.jsonl"
+V11_INSERTIONS = JOURNALS / "insertions_8_tasks_v11_grids.jsonl"
 
 
 def _recorded(seed: int, journal: Path = V8_PEG, task: str = "insert_peg") -> dict:

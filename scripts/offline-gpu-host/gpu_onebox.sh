@@ -1,29 +1,29 @@
 #!/usr/bin/env bash
-# The whole experiment on one GPU machine: record 8 tasks x 25 demos, train the paper configuration
-# (on one GPU or, with NPROC=2, on two through torchrun), evaluate closed-loop and offline, with every
-# phase timed. Written for a GPU machine without network access (python3 3.12 with CUDA torch and numpy 2,
-# 64 MiB carried in per transfer, at most 10 minutes per command, /tmp kept between commands while the
-# machine stays up); on a GPU workstation with rvt2 installed use scripts/reproduce_results.sh instead.
+# rvt2's phases on one GPU machine without network access (python3 3.12 with CUDA torch and numpy 2, 64 MiB
+# carried in per transfer, at most 10 minutes per command, /tmp kept between commands while the machine
+# stays up). On a GPU workstation with rvt2 installed, run `python -m benchmarks.experiment` directly.
 #
 # Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (56 MiB each) + site.sha256
 # Offline host, one command per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders);
-# K=scripts/offline-gpu-host:
-#   bash $K/gpu_onebox.sh stash                  # keep the carried parts (and data/heldout) in /tmp/w
-#   bash $K/gpu_onebox.sh stash setup record     # unpack, check the GPU renders, record (heldout: 30000+)
-#   bash $K/gpu_onebox.sh bg main train ddpbench # in the background: train RUN, then the DDP benchmark
-#   bash $K/gpu_onebox.sh wait main eval offline # wait for it, evaluate on the GPU, score held-out demos
-#   bash $K/gpu_onebox.sh loopbench              # the training loop against its step (benchmarks/loop_bench.py)
-#   bash $K/gpu_onebox.sh eval repro             # evaluate RUN, then part of it again: same episodes?
-#   bash $K/gpu_onebox.sh results                # phase times, logs, reports of RUNS -> $OUT/results.tgz
-#   bash $K/gpu_onebox.sh weights FIRST COUNT    # float16 weight pieces FIRST.. (and meta.tar with 0) to $OUT
-#   bash $K/gpu_onebox.sh stash setup restore    # on another machine: RUN's weights, carried in .gpu/weights*/
+# K=scripts/offline-gpu-host, E=experiments/rvt2_25demos.toml:
+#   bash $K/gpu_onebox.sh stash                         # keep the carried parts in /tmp/w
+#   bash $K/gpu_onebox.sh stash setup bg main experiment $E all > bg.log 2>&1   # unpack, then every phase in the background
+#   WAIT_S=540 bash $K/gpu_onebox.sh wait main          # repeat until it reports
+#   EXPERIMENT=$E bash $K/gpu_onebox.sh results         # logs and reports -> $OUT/results.tgz
+#   RUN_DIR=/tmp/w/rvt2_25demos/runs/seed0 bash $K/gpu_onebox.sh weights 0 4   # float16 weight pieces 0-3 (and meta.tar)
 # Online:  tar -xf meta.tar in the pieces' folder; python $K/gpu_checkpoint.py restore PIECES_DIR runs/NAME
-# Settings (environment): RUN, NPROC (processes/GPUs for train), BATCH (global), STEPS, TRAIN_ARGS (e.g.
-# "--compile --seed 1", "--episodes-per-task 10 --cameras front"), DATA (the demos RUN trains on),
-# OFFLINE_DEMOS (the held-out demos RUN is scored on), PIECES and WEIGHTS (carried weight pieces, and where
-# stash keeps them for restore: two runs' pieces kept apart), EVAL_EPISODES, EVAL_ARGS and EVAL_NAME (eval's options
-# and report name), WORKERS, RUNS (results), EXTRA_PYTHONPATH (a folder searched first, e.g. a sitecustomize.py).
-# gpu_results_v2.sh, gpu_results_v2_1gpu.sh and gpu_results_v3.sh hold the exact commands behind docs/RESULTS.md.
+# Weights trained elsewhere: carry their pieces as .gpu/weights*/, then `stash setup restore` with RUN_DIR set to
+# the experiment's run folder, and `experiment $E eval,offline`.
+#
+# Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
+# offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
+# building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, ddpbench,
+# eval, oracle, replay, repro, offline.
+# Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
+# NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
+# PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
+# searched first, e.g. a sitecustomize.py); for the building blocks RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA,
+# OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root: every path below is relative to it
 KIT=scripts/offline-gpu-host
@@ -38,6 +38,7 @@ STEPS=${STEPS:-1100}
 NPROC=${NPROC:-1}
 EVAL_EPISODES=${EVAL_EPISODES:-50}
 RUNS=${RUNS:-$RUN}
+RUN_DIR=${RUN_DIR:-$W/runs/$RUN}   # the run folder `weights` takes pieces from and `restore` writes
 PIECES=${PIECES:-.gpu/weights}     # a run's carried weight pieces: the folders $PIECES*/
 WEIGHTS=${WEIGHTS:-$W/weights}     # where stash keeps them and restore reads them
 HELDOUT=${HELDOUT:-data/heldout}   # held-out demos (recorded here with seeds the training never saw), carried in
@@ -122,8 +123,18 @@ while [ $# -gt 0 ]; do
     done
     phase merged $(( $(clock) - t ))
     ;;
-  restore)  # RUN's weights from the pieces stash kept in $WEIGHTS (another machine trained it)
-    python3 $KIT/gpu_checkpoint.py restore "$WEIGHTS" "$W/runs/$RUN"
+  restore)  # a run's weights from the pieces stash kept in $WEIGHTS (another machine trained it) into RUN_DIR
+    python3 $KIT/gpu_checkpoint.py restore "$WEIGHTS" "$RUN_DIR"
+    ;;
+  experiment)  # experiment FILE PHASES: an experiment file's phases (comma-separated, or all) into $W/NAME
+    file=$1 phases=$2
+    shift 2
+    t=$(clock)
+    # shellcheck disable=SC2086  # EXPERIMENT_ARGS is a list of options
+    python3 -m benchmarks.experiment "$file" --run --phase "$phases" --out "$W/$(basename "$file" .toml)" \
+      --rvt2 "python3 -m rvt2cli" --torchrun "python3 -m torch.distributed.run" --workers "$WORKERS" --gpus "$NPROC" \
+      --device "$DEVICE" ${EXPERIMENT_ARGS:-} 2>&1 | tee -a "$W/experiment_$(basename "$file" .toml).log"
+    phase "experiment_$(basename "$file" .toml)_$phases" $(( $(clock) - t ))
     ;;
   oracle)  # the executor's ceiling on the evaluation seeds: the expert's keyframes, closed loop
     t=$(clock)
@@ -133,7 +144,7 @@ while [ $# -gt 0 ]; do
     ;;
   replay)  # a recorded evaluation's predicted keyframes through today's executor (REPLAY: its journal)
     t=$(clock)
-    "${RVT2[@]}" eval --replay "${REPLAY:-benchmarks/results/ddp_h200x2/eval_10000/episodes.jsonl}" \
+    "${RVT2[@]}" eval --replay "${REPLAY:?give REPLAY=JOURNAL, the episodes.jsonl of a recorded evaluation}" \
       --tasks "${REPLAY_TASKS:-insert_peg,plug_charger,lift_peg_upright}" --episodes "$EVAL_EPISODES" --seed 10000 \
       --workers "$WORKERS" --out "$W/eval_replay" --no-progress 2>&1 | tail -5
     phase replay $(( $(clock) - t ))
@@ -187,7 +198,7 @@ while [ $# -gt 0 ]; do
     rm -rf "$W/bg_$name" "$W/$name.done"
     mkdir -p "$W/bg_$name" && tar -cf - --exclude=./.gpu --exclude=./data . | tar -x -C "$W/bg_$name"
     command="$KIT/gpu_onebox.sh $*"
-    if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script ($KIT/gpu_results_v2.sh)
+    if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script (e.g. $KIT/gpu_ddp_nonfinite.sh)
     (cd "$W/bg_$name" && setsid nohup bash -c "t=\$(date +%s); bash $command; echo \$? \$(( \$(date +%s) - t )) > $W/$name.done" \
       > "$W/$name.log" 2>&1 < /dev/null &)
     sleep "${START_WAIT:-5}"
@@ -223,6 +234,13 @@ while [ $# -gt 0 ]; do
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
     files=(phases.tsv ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
+    if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
+      e=$(basename "$EXPERIMENT" .toml)
+      # shellcheck disable=SC2207  # the globs expand in $W, one path per line
+      files+=($(cd "$W" && ls -d "experiment_$e.log" "$e/phases.tsv" "$e"/runs/*/{run.json,train.csv,validation.csv} \
+                "$e"/evals/*/{eval.json,eval.md,episodes.jsonl} "$e"/offline/*/{offline.json,offline.md} \
+                "$e"/oracle/{eval.json,eval.md,episodes.jsonl} 2>/dev/null || true))
+    fi
     for run in $RUNS; do
       files+=("train_$run.log" "runs/$run/train.csv" "runs/$run/validation.csv" "runs/$run/run.json" "eval_$run/eval.json"
               "eval_$run/eval.md" "eval_$run/episodes.jsonl" "offline_$run/offline.json" "offline_$run/offline.md"
@@ -236,7 +254,7 @@ while [ $# -gt 0 ]; do
   weights)  # weight pieces FIRST..FIRST+COUNT-1 (float16, 15 MiB each; at most 7 per transfer) and, with 0, the config
     first=$1 count=$2
     shift 2
-    [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$W/runs/$RUN" "$W/export/$RUN"
+    [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$RUN_DIR" "$W/export/$RUN"
     mkdir -p "$OUT/$RUN"
     for i in $(seq "$first" $((first + count - 1))); do
       piece=$(printf "%s/export/%s/weights.part%03d" "$W" "$RUN" "$i")
@@ -247,7 +265,7 @@ while [ $# -gt 0 ]; do
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|bench|record|heldout|merged|loopbench|train|restore|ddpbench|eval|oracle|replay|repro|offline|results|bg NAME PHASE...|wait NAME|weights FIRST COUNT" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline" >&2
     exit 2
     ;;
   esac

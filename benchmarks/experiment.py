@@ -1,0 +1,251 @@
+"""An experiment file (`experiments/*.toml`) turned into the `rvt2` commands that make its results.
+
+An experiment file is data: the tasks, the demos per task and their seeds, the held-out demos, the
+training options, steps, batch and training seeds, and the evaluation's episodes and seeds. This module
+prints those commands (`--print`, the default) or runs them one after the other (`--run`), each phase
+timed into OUT/phases.tsv. The phases, in order:
+
+    record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`)
+    heldout   demos on seeds training never sees, scored offline
+    train     one run per training seed (torchrun when --gpus > 1, the global batch kept)
+    eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted)
+    offline   each run's precision in millimetres on the held-out demos
+    oracle    the expert's own keyframes through the same executor, on the evaluation seeds
+
+    python -m benchmarks.experiment experiments/rvt2_25demos.toml                    # print every command
+    python -m benchmarks.experiment rvt2_10demos --run --phase train,eval --gpus 2   # some phases, 2 GPUs
+    python -m benchmarks.experiment rvt2_25demos --run --out data/h --rvt2 "python3 -m rvt2cli"
+
+The offline-GPU kit runs the same phases (`scripts/offline-gpu-host/gpu_onebox.sh experiment FILE PHASES`).
+"""
+
+import argparse
+import os
+import shlex
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from rvt2cli.errors import UserError
+
+REPOSITORY = Path(__file__).resolve().parent.parent
+EXPERIMENTS = REPOSITORY / "experiments"
+PHASES = ("record", "heldout", "train", "eval", "offline", "oracle")
+
+# The keys an experiment file may have, per table; anything else is a typo the user should hear about.
+SCHEMA = {
+    "": {"name", "summary", "tasks", "record", "heldout", "train", "eval", "oracle", "published"},
+    "record": {"demos_per_task", "first_seed", "merge_refinements_mm"},
+    "heldout": {"tasks", "demos_per_task", "first_seed"},
+    "train": {"config", "seeds", "steps", "batch_size", "options"},
+    "eval": {"episodes_per_task", "first_seed", "options"},
+    "oracle": {"episodes_per_task", "first_seed"},
+    "published": {"results", "raw", "machine", "notes"},
+}
+REQUIRED = {"record": "demos_per_task", "heldout": "demos_per_task", "train": "steps", "eval": "episodes_per_task",
+            "oracle": "episodes_per_task"}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What depends on the machine, not on the experiment."""
+
+    out: Path
+    rvt2: tuple[str, ...] = ("rvt2",)
+    torchrun: tuple[str, ...] = ("torchrun",)
+    workers: int = 1
+    gpus: int = 1
+    device: str = "cuda"
+    training_seeds: tuple[int, ...] | None = None  # None: the experiment's
+
+
+def resolve(name: str) -> Path:
+    """An experiment file's path from a path or a bare name in experiments/ (`rvt2_25demos`)."""
+    path = Path(name)
+    if not path.exists() and path.suffix != ".toml":
+        path = EXPERIMENTS / f"{name}.toml"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in EXPERIMENTS.glob("*.toml")))
+        raise UserError(f"{name}: no such experiment file; give a path or one of: {known}")
+    return path
+
+
+def load(path: Path) -> dict:
+    """The experiment file, its keys checked against SCHEMA and its tasks against tasks/*.toml."""
+    from rvt2cli.tasks import all_tasks
+
+    try:
+        experiment = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{path}: not valid TOML ({e}); fix the file") from None
+    for table, allowed in SCHEMA.items():
+        section = experiment if table == "" else experiment.get(table, {})
+        unknown = sorted(set(section) - allowed)
+        if unknown:
+            where = f"[{table}]" if table else "the top level"
+            raise UserError(f"{path}: unknown key {unknown[0]!r} in {where}; known: {', '.join(sorted(allowed))}")
+    for required in ("name", "tasks", "record", "train", "eval"):
+        if required not in experiment:
+            raise UserError(f"{path}: no {required!r}; every experiment file gives name, tasks, [record], [train] and [eval]")
+    for table, key in REQUIRED.items():
+        if table in experiment and key not in experiment[table]:
+            raise UserError(f"{path}: [{table}] has no {key!r}; add it")
+    known = all_tasks()
+    for task in experiment["tasks"] + experiment.get("heldout", {}).get("tasks", []):
+        if task not in known:
+            raise UserError(f"{path}: unknown task {task!r}; known: {', '.join(sorted(known))}")
+    return experiment
+
+
+def options(table: dict) -> list[str]:
+    """A TOML table of command-line options as arguments: `aim-held = true` -> --aim-held,
+    `steps = 10` -> --steps 10, a table -> --task-weights insert_peg=3,plug_charger=3."""
+    argv = []
+    for key, value in table.items():
+        if value is True:
+            argv.append(f"--{key}")
+        elif isinstance(value, dict):
+            argv += [f"--{key}", ",".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items())]
+        elif value is not False:
+            argv += [f"--{key}", str(value)]
+    return argv
+
+
+def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[str, list[str]]]:
+    """(phase, argv) for every command of these phases, in the order they run."""
+    rvt2, out, workers = list(settings.rvt2), settings.out, str(settings.workers)
+    record, heldout, train, evaluate = (experiment.get(k, {}) for k in ("record", "heldout", "train", "eval"))
+    merge = ["--merge-refinements", str(record["merge_refinements_mm"])] if record.get("merge_refinements_mm") else []
+    seeds = settings.training_seeds if settings.training_seeds is not None else tuple(train.get("seeds", [0]))
+    batch = int(train.get("batch_size", 24))
+    if batch % settings.gpus:
+        raise UserError(f"--gpus {settings.gpus} does not divide the global batch {batch} of {experiment['name']}; "
+                        "give a number of GPUs that divides it")
+    launch = rvt2 if settings.gpus == 1 else [*settings.torchrun, "--standalone", "--nproc-per-node", str(settings.gpus), "-m", "rvt2cli"]
+    run = []
+
+    def demos(phase, folder, tasks, episodes, first_seed):
+        for task in tasks:
+            run.append((phase, rvt2 + ["record", "--task", task, "--episodes", str(episodes), "--seed", str(first_seed),
+                                       "--workers", workers, "--out", str(out / folder), "--no-progress"]))
+        run.append((phase, rvt2 + ["extract-keyframes", str(out / folder)] + merge))
+
+    for phase in phases:
+        if phase == "record":
+            demos(phase, "demos", experiment["tasks"], record["demos_per_task"], record.get("first_seed", 0))
+        elif phase == "heldout" and heldout:
+            demos(phase, "heldout", heldout.get("tasks", experiment["tasks"]), heldout["demos_per_task"],
+                  heldout.get("first_seed", 30000))
+        elif phase == "train":
+            for seed in seeds:
+                run.append((phase, launch + ["train", "--data", str(out / "demos"), "--out", str(out / "runs" / f"seed{seed}"),
+                                             "--config", train.get("config", "rvt2"), "--seed", str(seed),
+                                             "--steps", str(train["steps"]), "--batch-size", str(batch // settings.gpus)]
+                            + options(train.get("options", {})) + ["--no-progress"]))
+        elif phase == "eval":
+            for seed in seeds:
+                folder = out / "evals" / f"seed{seed}"
+                resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
+                run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
+                                           "--episodes", str(evaluate["episodes_per_task"]),
+                                           "--seed", str(evaluate.get("first_seed", 10000)), "--workers", workers,
+                                           "--device", settings.device, "--out", str(folder)]
+                            + options(evaluate.get("options", {})) + resume + ["--no-progress"]))
+        elif phase == "offline" and heldout:
+            for seed in seeds:
+                run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
+                                           "--offline", str(out / "heldout"), "--device", settings.device,
+                                           "--out", str(out / "offline" / f"seed{seed}"), "--no-progress"]))
+        elif phase == "oracle" and "oracle" in experiment:
+            oracle = experiment["oracle"]
+            run.append((phase, rvt2 + ["eval", "--oracle", "--tasks", ",".join(experiment["tasks"]),
+                                       "--episodes", str(oracle["episodes_per_task"]),
+                                       "--seed", str(oracle.get("first_seed", 10000)), "--workers", workers,
+                                       "--out", str(out / "oracle"), "--no-progress"]))
+    return run
+
+
+def execute(run: list[tuple[str, list[str]]], out: Path) -> int:
+    """Each command in turn, stopping at the first that fails; each phase's seconds into out/phases.tsv."""
+    out.mkdir(parents=True, exist_ok=True)
+    for index, (phase, argv) in enumerate(run):
+        if index == 0 or run[index - 1][0] != phase:
+            started = time.monotonic()
+            print(f"== {phase}", flush=True)
+        print("$ " + shlex.join(argv), flush=True)
+        try:
+            code = subprocess.run(argv).returncode
+        except FileNotFoundError:
+            print(f"experiment: error: {argv[0]}: not found; run `make setup` and `source .venv/bin/activate`, "
+                  "or name the command with --rvt2", file=sys.stderr)
+            return 2
+        if code:
+            print(f"experiment: {phase} failed (exit code {code}): {shlex.join(argv)}", file=sys.stderr)
+            return code
+        if index == len(run) - 1 or run[index + 1][0] != phase:
+            with open(out / "phases.tsv", "a") as f:
+                f.write(f"{phase}\t{time.monotonic() - started:.0f}\n")
+    return 0
+
+
+def parse_phases(text: str) -> tuple[str, ...]:
+    phases = PHASES if text == "all" else tuple(p for p in text.split(",") if p)
+    unknown = [p for p in phases if p not in PHASES]
+    if unknown or not phases:
+        raise UserError(f"--phase {text}: give 'all' or some of {','.join(PHASES)}, comma-separated")
+    return phases
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.experiment",
+                                     description="Print or run the rvt2 commands of an experiment file (experiments/*.toml).")
+    parser.add_argument("experiment", help="an experiment file, or its name in experiments/ (e.g. rvt2_25demos)")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--print", dest="run", action="store_false", help="print the commands (default)")
+    mode.add_argument("--run", action="store_true", help="run them, each phase timed into OUT/phases.tsv")
+    parser.set_defaults(run=False)
+    parser.add_argument("--phase", default="all", help=f"'all' (default) or some of {','.join(PHASES)}, in that order")
+    parser.add_argument("--out", help="the experiment's folder: demos, runs, evaluations (default data/experiments/NAME)")
+    parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 1) - 2),
+                        help="simulator processes (default: the cores less two, which feed the GPU)")
+    parser.add_argument("--gpus", type=int, default=1, help="GPUs to train on through torchrun, the global batch kept (default 1)")
+    parser.add_argument("--device", default="cuda", help="the policy's device in evaluation (default cuda)")
+    parser.add_argument("--training-seeds", help="comma-separated training seeds instead of the file's (e.g. 0)")
+    parser.add_argument("--rvt2", default="rvt2", help="the command that runs rvt2 (default rvt2; e.g. 'python3 -m rvt2cli')")
+    parser.add_argument("--torchrun", default="torchrun",
+                        help="the command that launches training on several GPUs (default torchrun)")
+    args = parser.parse_args(argv)
+    try:
+        experiment = load(resolve(args.experiment))
+        if args.workers < 1 or args.gpus < 1:
+            raise UserError("--workers and --gpus take a whole number of at least 1")
+        seeds = None
+        if args.training_seeds:
+            try:
+                seeds = tuple(int(s) for s in args.training_seeds.split(","))
+            except ValueError:
+                raise UserError(f"--training-seeds {args.training_seeds}: give whole numbers, comma-separated") from None
+        out = Path(args.out or f"data/experiments/{experiment['name']}")
+        settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), torchrun=tuple(shlex.split(args.torchrun)),
+                            workers=args.workers, gpus=args.gpus,
+                            device=args.device, training_seeds=seeds)
+        run = commands(experiment, settings, parse_phases(args.phase))
+    except UserError as e:
+        print(f"experiment: error: {e}", file=sys.stderr)
+        return e.exit_code
+    if args.run:
+        return execute(run, out)
+    phase = None
+    for name, command in run:
+        if name != phase:
+            print(f"# {name}")
+            phase = name
+        print(shlex.join(command))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

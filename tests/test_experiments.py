@@ -1,0 +1,93 @@
+"""experiments/*.toml through benchmarks/experiment.py: every command an experiment file turns into is
+one the real `rvt2` parsers accept, so a renamed or removed option fails here, not on a GPU machine."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks import experiment as runner
+from rvt2cli.cli import build_parser
+
+EXPERIMENT_FILES = sorted(runner.EXPERIMENTS.glob("*.toml"))
+
+
+def rvt2_arguments(argv: list[str]) -> list[str]:
+    """The arguments after the launcher: `rvt2 ...` or `torchrun ... -m rvt2cli ...`."""
+    return argv[1:] if argv[0] == "rvt2" else argv[argv.index("rvt2cli") + 1:]
+
+
+def test_there_are_experiments():
+    assert {p.stem for p in EXPERIMENT_FILES} >= {"rvt2_25demos", "rvt2_10demos"}
+
+
+@pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=lambda p: p.stem)
+@pytest.mark.parametrize("gpus", [1, 2])
+def test_every_command_parses_with_the_cli(path, gpus, tmp_path):
+    experiment = runner.load(path)
+    settings = runner.Settings(out=tmp_path, workers=3, gpus=gpus)
+    run = runner.commands(experiment, settings)
+    assert [phase for phase in runner.PHASES if any(p == phase for p, _ in run)] == list(runner.PHASES)
+    parser = build_parser()
+    for phase, argv in run:
+        arguments = rvt2_arguments(argv)
+        args = parser.parse_args(arguments)  # an unknown option or a bad value exits here
+        assert args.command == arguments[0]
+        if phase == "train":
+            assert args.batch_size * gpus == experiment["train"]["batch_size"]
+            assert args.steps == experiment["train"]["steps"]
+            assert (argv[0] == "torchrun") == (gpus > 1)
+
+
+@pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=lambda p: p.stem)
+def test_published_raw_files_are_in_the_tree(path):
+    published = runner.load(path)["published"]
+    for raw in published["raw"]:
+        assert (runner.REPOSITORY / raw).exists(), raw
+
+
+def test_print_is_the_default_and_names_each_phase(capsys):
+    assert runner.main(["rvt2_25demos", "--phase", "train,eval", "--workers", "4"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "# train" and "# eval" in lines
+    train = lines[1]
+    assert train.startswith("rvt2 train ") and "--task-weights insert_peg=3,plug_charger=3" in train
+    assert not Path("data/experiments/rvt2_25demos").exists()  # printing creates nothing
+
+
+@pytest.mark.parametrize("text, message", [
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\nbatch = 4\n[eval]\nepisodes_per_task = 1\n",
+     "unknown key 'batch' in [train]"),
+    ("name = 'x'\ntasks = ['push_cubes']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 1\n",
+     "unknown task 'push_cubes'"),
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nseeds = [0]\n[eval]\nepisodes_per_task = 1\n",
+     "[train] has no 'steps'"),
+    ("name = 'x'\ntasks = [\n", "not valid TOML"),
+])
+def test_a_bad_file_is_one_line_and_exit_code_2(tmp_path, capsys, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert runner.main([str(path)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(path) in err and len(err.strip().splitlines()) == 1
+
+
+def test_gpus_must_divide_the_batch(capsys):
+    assert runner.main(["rvt2_25demos", "--gpus", "5"]) == 2
+    assert "does not divide the global batch 192" in capsys.readouterr().err
+
+
+@pytest.mark.sim
+def test_run_executes_a_phase_and_times_it(tmp_path):
+    """--run on the real simulator: the oracle of one push_cube episode."""
+    path = tmp_path / "tiny.toml"
+    path.write_text("name = 'tiny'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n"
+                    "[eval]\nepisodes_per_task = 1\n[oracle]\nepisodes_per_task = 1\nfirst_seed = 10000\n")
+    out = tmp_path / "out"
+    code = runner.main([str(path), "--run", "--phase", "oracle", "--workers", "1", "--out", str(out),
+                        "--rvt2", f"{sys.executable} -m rvt2cli"])
+    assert code == 0
+    report = json.loads((out / "oracle" / "eval.json").read_text())
+    assert report["episodes_per_task"] == 1 and report["seed"] == 10000
+    assert [line.split("\t")[0] for line in (out / "phases.tsv").read_text().splitlines()] == ["oracle"]
