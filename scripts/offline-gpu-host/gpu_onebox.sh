@@ -198,7 +198,7 @@ while [ $# -gt 0 ]; do
     rm -rf "$W/bg_$name" "$W/$name.done"
     mkdir -p "$W/bg_$name" && tar -cf - --exclude=./.gpu --exclude=./data . | tar -x -C "$W/bg_$name"
     command="$KIT/gpu_onebox.sh $*"
-    if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script (e.g. $KIT/gpu_ddp_nonfinite.sh)
+    if [ -f "${1:-}" ]; then command="$*"; fi  # bg NAME SCRIPT ARGS...: another script
     (cd "$W/bg_$name" && setsid nohup bash -c "t=\$(date +%s); bash $command; echo \$? \$(( \$(date +%s) - t )) > $W/$name.done" \
       > "$W/$name.log" 2>&1 < /dev/null &)
     sleep "${START_WAIT:-5}"
