@@ -39,9 +39,9 @@ class InsertOntoSquarePegEnv(VariationEnv):
 
     def _build_task(self, options: dict):
         rng = colour_rng(self)
-        self.target_spoke = int(rng.integers(N_SPOKES))
+        named = int(rng.integers(N_SPOKES))
         others = iter(distractor_colours(rng, self.variation, N_SPOKES - 1))
-        self.spoke_colours = [self.variation if i == self.target_spoke else next(others) for i in range(N_SPOKES)]
+        self.spoke_colours = [self.variation if i == named else next(others) for i in range(N_SPOKES)]
 
         ring = self.scene.create_actor_builder()
         along = RING_OUTER - RING_WALL / 2
@@ -92,13 +92,19 @@ class InsertOntoSquarePegEnv(VariationEnv):
         around = np.linalg.norm(ring[:2] - top[:2]) <= RING_OUTER - RING_WALL - SPOKE_HALF
         return torch.tensor([bool(around and ring[2] < top[2])])
 
+    def named_spokes(self) -> list[int]:
+        """The spokes in the colour the variation names (none, when another variation's colours were built)."""
+        return [i for i, colour in enumerate(self.spoke_colours) if colour == self.variation]
+
     def evaluate(self):
-        on = [self._encircles(i) for i in range(N_SPOKES)]
-        wrong = torch.zeros(1, dtype=torch.bool)
-        for i, hit in enumerate(on):
-            if i != self.target_spoke:
-                wrong |= hit
-        return {"success": on[self.target_spoke], "wrong_target": wrong}
+        success, wrong = torch.zeros(1, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)
+        named = self.named_spokes()
+        for i in range(N_SPOKES):
+            if i in named:
+                success |= self._encircles(i)
+            else:
+                wrong |= self._encircles(i)
+        return {"success": success, "wrong_target": wrong}
 
 
 HOVER_M = 0.03      # the ring's bottom passes this far above the spokes' tops
@@ -128,7 +134,7 @@ def expert(env, seed=None):
         return -1
     planner.close_gripper()
 
-    top = scene.spoke_top(scene.target_spoke)
+    top = scene.spoke_top(scene.named_spokes()[0])
     ring_pose = scene.ring.pose.sp
     ring_yaw = Rotation.from_quat(ring_pose.q, scalar_first=True).as_euler("xyz")[2]
     quarter = np.pi / 2  # the ring is square: any quarter turn fits, so turn it the least
