@@ -12,6 +12,8 @@ from rvt2cli.tasks import get_task
 # task: (seed, the variation its expert solves, another variation). The variations differ from task to task.
 CASES = {
     "insert_onto_square_peg": (10013, 13, 4),
+    "place_shape_in_shape_sorter": (10002, 2, 0),
+    "place_wine_at_rack_location": (10001, 1, 2),
 }
 
 

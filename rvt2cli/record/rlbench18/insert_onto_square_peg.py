@@ -146,16 +146,19 @@ def expert(env, seed=None):
         return goal * scene.ring.pose.sp.inv() * scene.agent.tcp.pose.sp
 
     carry_z = top[2] + HOVER_M + RING_HALF_HEIGHT
-    lifted = scene.agent.tcp.pose.sp
-    lifted = sapien.Pose(lifted.p + [0, 0, carry_z - ring_pose.p[2]], lifted.q)
+    lifted = sapien.Pose(grasp.p + [0, 0, carry_z - ring_pose.p[2]], grasp.q)
     if planner.move_to_pose_with_screw(lifted) == -1:
         return -1
-    if planner.move_to_pose_with_screw(tcp_for(carry_z)) == -1:
+    aligned = tcp_for(carry_z)
+    if planner.move_to_pose_with_screw(aligned) == -1:
         return -1
-    if planner.move_to_pose_with_screw(tcp_for(carry_z)) == -1:  # re-aimed from where the ring now hangs
+    # re-aimed from where the ring now hangs, by a shift only: mplib's screw motions can fail on the
+    # hair's-breadth turns that the measured orientation would add
+    aligned = sapien.Pose(tcp_for(carry_z).p, aligned.q)
+    if planner.move_to_pose_with_screw(aligned) == -1:
         return -1
-    if planner.move_to_pose_with_screw(tcp_for(top[2] - ENGAGE_M + RING_HALF_HEIGHT)) == -1:
+    lowered = sapien.Pose(aligned.p - [0, 0, HOVER_M + ENGAGE_M], aligned.q)
+    if planner.move_to_pose_with_screw(lowered) == -1:
         return -1
     planner.open_gripper()
-    released = scene.agent.tcp.pose.sp
-    return planner.move_to_pose_with_screw(sapien.Pose(released.p + [0, 0, 0.08], released.q))
+    return planner.move_to_pose_with_screw(sapien.Pose(lowered.p + [0, 0, 0.08], lowered.q))

@@ -149,20 +149,21 @@ def expert(env, seed=None):
     hole = scene.hole_top(scene.variation)
 
     def tcp_for(bottom_above_top: float) -> sapien.Pose:
-        """The TCP pose that holds the shape, as it now sits in the hand, centred over its opening."""
-        tcp, held = scene.agent.tcp.pose.sp, shape.pose.sp.p
-        return sapien.Pose(tcp.p + [hole[0] - held[0], hole[1] - held[1], hole[2] + bottom_above_top + H - held[2]],
-                           tcp.q)
+        """The grasp's hand that holds the shape, as it now sits in it, centred over its opening. (mplib's
+        screw motions can fail on the hair's-breadth turns that a measured orientation would add.)"""
+        tcp, held = scene.agent.tcp.pose.sp.p, shape.pose.sp.p
+        return sapien.Pose(tcp + [hole[0] - held[0], hole[1] - held[1], hole[2] + bottom_above_top + H - held[2]],
+                           grasp.q)
 
-    lifted = scene.agent.tcp.pose.sp
-    lifted = sapien.Pose(lifted.p + [0, 0, tcp_for(CARRY_M).p[2] - lifted.p[2]], lifted.q)
+    lifted = sapien.Pose(grasp.p + [0, 0, tcp_for(CARRY_M).p[2] - grasp.p[2]], grasp.q)
     if planner.move_to_pose_with_screw(lifted) == -1:
         return -1
     for _ in range(2):  # over the opening, then re-aimed from where the shape now hangs
-        if planner.move_to_pose_with_screw(tcp_for(CARRY_M)) == -1:
+        over = tcp_for(CARRY_M)
+        if planner.move_to_pose_with_screw(over) == -1:
             return -1
-    if planner.move_to_pose_with_screw(tcp_for(RELEASE_M)) == -1:
+    lowered = sapien.Pose(over.p - [0, 0, CARRY_M - RELEASE_M], grasp.q)
+    if planner.move_to_pose_with_screw(lowered) == -1:
         return -1
     planner.open_gripper()
-    released = scene.agent.tcp.pose.sp
-    return planner.move_to_pose_with_screw(sapien.Pose(released.p + [0, 0, 0.08], released.q))
+    return planner.move_to_pose_with_screw(sapien.Pose(lowered.p + [0, 0, 0.08], grasp.q))
