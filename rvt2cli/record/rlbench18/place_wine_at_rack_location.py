@@ -122,7 +122,7 @@ def expert(env, seed=None):
         in_hand = scene.agent.tcp.pose.sp.inv() * scene.bottle.pose.sp
         return sapien.Pose(scene.slot_centre(location) + [0, 0, above] - (sapien.Pose(q=placing) * in_hand).p, placing)
 
-    lifted = sapien.Pose(grasp.p + [0, 0, 0.1], grasp.q)
+    lifted = sapien.Pose(grasp.p + [0, 0, 0.06], grasp.q)  # clear of the rails (higher, the arm nears a singularity)
     if planner.move_to_pose_with_screw(lifted) == -1:
         return -1
     for _ in range(2):  # over the cradle, then re-aimed from where the bottle now hangs
