@@ -10,6 +10,7 @@ wears the named one.
 import numpy as np
 import sapien
 import torch
+from transforms3d.euler import euler2quat
 from scipy.spatial.transform import Rotation
 
 from mani_skill.utils.registration import register_env
@@ -26,11 +27,6 @@ SPOKE_SPACING = 0.10     # m between neighbouring spokes
 PLATE_HALF = (0.04, 0.17, 0.005)
 N_SPOKES = 3
 GREY = [0.35, 0.3, 0.25, 1.0]
-
-
-def _yaw_quat(yaw: float) -> list[float]:
-    """wxyz quaternion of a rotation about z."""
-    return [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
 
 
 @register_env("RVT2-InsertOntoSquarePeg-v1", max_episode_steps=400)
@@ -73,8 +69,8 @@ class InsertOntoSquarePegEnv(VariationEnv):
         rng = self._episode_rng
         plate_xy, plate_yaw = rng.uniform([0.0, -0.1], [0.08, 0.1]), rng.uniform(-np.pi / 8, np.pi / 8)
         ring_xy, ring_yaw = rng.uniform([-0.25, -0.2], [-0.16, 0.2]), rng.uniform(0, np.pi / 2)
-        self.spokes.set_pose(Pose.create_from_pq(p=[*plate_xy, PLATE_HALF[2]], q=_yaw_quat(plate_yaw)))
-        self.ring.set_pose(Pose.create_from_pq(p=[*ring_xy, RING_HALF_HEIGHT], q=_yaw_quat(ring_yaw)))
+        self.spokes.set_pose(Pose.create_from_pq(p=[*plate_xy, PLATE_HALF[2]], q=euler2quat(0, 0, plate_yaw)))
+        self.ring.set_pose(Pose.create_from_pq(p=[*ring_xy, RING_HALF_HEIGHT], q=euler2quat(0, 0, ring_yaw)))
 
     # --- geometry the expert and the success check share ---------------------------------------------
 
@@ -116,6 +112,7 @@ def expert(env, seed=None):
     spoke's square, lower it onto the spoke's top, let go and back off upwards. -1 if a motion cannot be
     planned."""
     from rvt2cli.record.experts import _grasp_from_above, _solver
+    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
 
     env.reset(seed=seed)
     scene = env.unwrapped
@@ -128,11 +125,8 @@ def expert(env, seed=None):
     wall = min(walls, key=lambda p: p[0])  # the wall nearer the robot's base (which stands at -x)
     grasp = sapien.Pose(wall, grasp.q)
 
-    if planner.move_to_pose_with_screw(sapien.Pose(grasp.p + [0, 0, 0.08], grasp.q)) == -1:
+    if not grasp_from_above(planner, grasp):
         return -1
-    if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe
-        return -1
-    planner.close_gripper()
 
     top = scene.spoke_top(scene.named_spokes()[0])
     ring_pose = scene.ring.pose.sp
@@ -142,23 +136,14 @@ def expert(env, seed=None):
 
     def tcp_for(ring_centre_z: float) -> sapien.Pose:
         """The TCP pose that puts the ring, as it now sits in the hand, level over the spoke at this height."""
-        goal = sapien.Pose([top[0], top[1], ring_centre_z], _yaw_quat(yaw))
+        goal = sapien.Pose([top[0], top[1], ring_centre_z], euler2quat(0, 0, yaw))
         return goal * scene.ring.pose.sp.inv() * scene.agent.tcp.pose.sp
 
     carry_z = top[2] + HOVER_M + RING_HALF_HEIGHT
     lifted = sapien.Pose(grasp.p + [0, 0, carry_z - ring_pose.p[2]], grasp.q)
     if planner.move_to_pose_with_screw(lifted) == -1:
         return -1
-    aligned = tcp_for(carry_z)
-    if planner.move_to_pose_with_screw(aligned) == -1:
-        return -1
-    # re-aimed from where the ring now hangs, by a shift only: mplib's screw motions can fail on the
-    # hair's-breadth turns that the measured orientation would add
-    aligned = sapien.Pose(tcp_for(carry_z).p, aligned.q)
-    if planner.move_to_pose_with_screw(aligned) == -1:
-        return -1
-    lowered = sapien.Pose(aligned.p - [0, 0, HOVER_M + ENGAGE_M], aligned.q)
-    if planner.move_to_pose_with_screw(lowered) == -1:
-        return -1
-    planner.open_gripper()
-    return planner.move_to_pose_with_screw(sapien.Pose(lowered.p + [0, 0, 0.08], lowered.q))
+    # re-aimed from where the ring now hangs by a shift only, keeping the first aim's turn: mplib's screw
+    # motions can fail on the hair's-breadth turns that the measured orientation would add
+    turned = tcp_for(carry_z).q
+    return place_from_above(planner, lambda: sapien.Pose(tcp_for(carry_z).p, turned), HOVER_M + ENGAGE_M)

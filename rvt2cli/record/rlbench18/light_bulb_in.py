@@ -10,6 +10,7 @@ variation picks the colours and which holder wears the named one.
 import numpy as np
 import sapien
 import torch
+from transforms3d.euler import euler2quat
 
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.pose import Pose
@@ -29,10 +30,6 @@ SOCKET_DEPTH = 0.015   # its walls rise this far above its floor
 FLOOR = 0.006
 LAMP_HEIGHT = 0.08     # the lamp's socket floor stands this high
 N_HOLDERS = 2
-
-
-def _yaw_quat(yaw: float) -> list[float]:
-    return [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
 
 
 def _add_socket(builder, floor_z: float, colour, post_half: tuple | None = None):
@@ -89,14 +86,14 @@ class LightBulbInEnv(VariationEnv):
     def _place_task(self, env_idx, options: dict):
         rng = self._episode_rng
         self.lamp.set_pose(Pose.create_from_pq(p=[*rng.uniform([0.0, -0.1], [0.1, 0.1]), 0.0],
-                                               q=_yaw_quat(rng.uniform(0, np.pi / 2))))
+                                               q=euler2quat(0, 0, rng.uniform(0, np.pi / 2))))
         placed = []
         while len(placed) < N_HOLDERS:  # apart enough for the open gripper between them
             xy = rng.uniform([-0.25, -0.2], [-0.1, 0.2])
             if all(np.linalg.norm(xy - other) >= 0.12 for other in placed):
                 placed.append(xy)
         for holder, bulb, xy in zip(self.holders, self.bulbs, placed):
-            yaw = _yaw_quat(rng.uniform(0, np.pi / 2))
+            yaw = euler2quat(0, 0, rng.uniform(0, np.pi / 2))
             holder.set_pose(Pose.create_from_pq(p=[*xy, 0.0], q=yaw))
             bulb.set_pose(Pose.create_from_pq(p=[*xy, FLOOR], q=yaw))
 
@@ -129,6 +126,7 @@ def expert(env, seed=None):
     """Grasp the named holder's bulb by its neck from above, carry it over the lamp, lower its cap into
     the socket, let go and back off upwards. -1 if a motion cannot be planned."""
     from rvt2cli.record.experts import _grasp_from_above, _solver
+    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
 
     env.reset(seed=seed)
     scene = env.unwrapped
@@ -136,11 +134,8 @@ def expert(env, seed=None):
     bulb = scene.bulbs[scene.named_holders()[0]]
 
     grasp = _grasp_from_above(scene, bulb, at=(bulb.pose.sp * sapien.Pose([0, 0, NECK_Z])).p)
-    if planner.move_to_pose_with_screw(sapien.Pose(grasp.p + [0, 0, 0.08], grasp.q)) == -1:
+    if not grasp_from_above(planner, grasp):
         return -1
-    if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe
-        return -1
-    planner.close_gripper()
 
     socket = scene.socket_floor()
 
@@ -153,12 +148,4 @@ def expert(env, seed=None):
     lifted = sapien.Pose(grasp.p + [0, 0, tcp_for(carry).p[2] - grasp.p[2]], grasp.q)
     if planner.move_to_pose_with_screw(lifted) == -1:
         return -1
-    for _ in range(2):  # over the socket, then re-aimed from where the bulb now hangs
-        over = tcp_for(carry)
-        if planner.move_to_pose_with_screw(over) == -1:
-            return -1
-    lowered = sapien.Pose(over.p - [0, 0, carry - RELEASE_M], grasp.q)
-    if planner.move_to_pose_with_screw(lowered) == -1:
-        return -1
-    planner.open_gripper()
-    return planner.move_to_pose_with_screw(sapien.Pose(lowered.p + [0, 0, 0.08], grasp.q))
+    return place_from_above(planner, lambda: tcp_for(carry), carry - RELEASE_M)

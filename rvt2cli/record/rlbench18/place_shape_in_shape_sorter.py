@@ -10,6 +10,7 @@ another shape inside it or in the gripper is a wrong object. The variation only 
 import numpy as np
 import sapien
 import torch
+from transforms3d.euler import euler2quat
 
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.pose import Pose
@@ -28,10 +29,6 @@ PLATE = 0.01
 HOLE_HALF = 0.025
 HOLES = ((0.0325, -0.065), (0.0325, 0.0), (0.0325, 0.065), (-0.0325, -0.0325), (-0.0325, 0.0325))  # one per shape
 SORTER_COLOUR = (0.75, 0.6, 0.4, 1.0)
-
-
-def _yaw_quat(yaw: float) -> list[float]:
-    return [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
 
 
 def _shape_boxes(name: str) -> list[tuple[list[float], list[float], float]]:
@@ -69,8 +66,8 @@ class PlaceShapeInShapeSorterEnv(VariationEnv):
                 builder.add_cylinder_visual(upright, radius=0.014, half_length=H, material=material)
             else:
                 for centre, half, yaw in _shape_boxes(name):
-                    builder.add_box_collision(sapien.Pose(centre, _yaw_quat(yaw)), half)
-                    builder.add_box_visual(sapien.Pose(centre, _yaw_quat(yaw)), half, material=material)
+                    builder.add_box_collision(sapien.Pose(centre, euler2quat(0, 0, yaw)), half)
+                    builder.add_box_visual(sapien.Pose(centre, euler2quat(0, 0, yaw)), half, material=material)
             builder.initial_pose = sapien.Pose([-0.2, 0.1 * len(self.shapes), H])
             self.shapes.append(builder.build(name.replace(" ", "_")))
 
@@ -100,14 +97,14 @@ class PlaceShapeInShapeSorterEnv(VariationEnv):
     def _place_task(self, env_idx, options: dict):
         rng = self._episode_rng
         self.sorter.set_pose(Pose.create_from_pq(p=[*rng.uniform([0.06, -0.06], [0.12, 0.06]), 0.0],
-                                                 q=_yaw_quat(rng.uniform(-np.pi / 8, np.pi / 8))))
+                                                 q=euler2quat(0, 0, rng.uniform(-np.pi / 8, np.pi / 8))))
         placed = []
         while len(placed) < len(self.shapes):  # apart enough for the open gripper between neighbours
             xy = rng.uniform([-0.26, -0.22], [-0.08, 0.22])
             if all(np.linalg.norm(xy - other) >= 0.08 for other in placed):
                 placed.append(xy)
         for shape, xy in zip(self.shapes, placed):
-            shape.set_pose(Pose.create_from_pq(p=[*xy, H], q=_yaw_quat(rng.uniform(0, 2 * np.pi))))
+            shape.set_pose(Pose.create_from_pq(p=[*xy, H], q=euler2quat(0, 0, rng.uniform(0, 2 * np.pi))))
 
     def hole_top(self, i: int) -> np.ndarray:
         """World position of the centre of opening i, level with the sorter's top."""
@@ -133,6 +130,7 @@ def expert(env, seed=None):
     """Grasp the named shape from above, carry it over its opening, let go and back off upwards. -1 if a
     motion cannot be planned."""
     from rvt2cli.record.experts import _grasp_from_above, _solver
+    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
 
     env.reset(seed=seed)
     scene = env.unwrapped
@@ -140,11 +138,8 @@ def expert(env, seed=None):
     shape = scene.shapes[scene.variation]
 
     grasp = _grasp_from_above(scene, shape, at=shape.pose.sp.p)
-    if planner.move_to_pose_with_screw(sapien.Pose(grasp.p + [0, 0, 0.08], grasp.q)) == -1:
+    if not grasp_from_above(planner, grasp):
         return -1
-    if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe
-        return -1
-    planner.close_gripper()
 
     hole = scene.hole_top(scene.variation)
 
@@ -158,12 +153,4 @@ def expert(env, seed=None):
     lifted = sapien.Pose(grasp.p + [0, 0, tcp_for(CARRY_M).p[2] - grasp.p[2]], grasp.q)
     if planner.move_to_pose_with_screw(lifted) == -1:
         return -1
-    for _ in range(2):  # over the opening, then re-aimed from where the shape now hangs
-        over = tcp_for(CARRY_M)
-        if planner.move_to_pose_with_screw(over) == -1:
-            return -1
-    lowered = sapien.Pose(over.p - [0, 0, CARRY_M - RELEASE_M], grasp.q)
-    if planner.move_to_pose_with_screw(lowered) == -1:
-        return -1
-    planner.open_gripper()
-    return planner.move_to_pose_with_screw(sapien.Pose(lowered.p + [0, 0, 0.08], grasp.q))
+    return place_from_above(planner, lambda: tcp_for(CARRY_M), CARRY_M - RELEASE_M)

@@ -3,14 +3,15 @@ middle, left, right, in RLBench's order; left is the robot's left, +y).
 
 The bottle (a cylinder with a narrower cylinder for its neck) lies on its side on the table, its neck
 pointing away from the robot within 60 degrees; the rack is a plate with three cradles side by side, each
-two rails along the rack's x on which a bottle lies lengthwise. The task succeeds when the bottle lies in the named cradle and the gripper has let it go (RLBench's
-proximity sensor at that location, and nothing grasped); a bottle in another cradle is a wrong target.
-The variation only names the slot.
+two rails along the rack's x on which a bottle lies lengthwise. The task succeeds when the bottle lies in
+the named cradle and the gripper has let it go (RLBench's proximity sensor at that location, and nothing
+grasped); a bottle in another cradle is a wrong target. The variation only names the slot.
 """
 
 import numpy as np
 import sapien
 import torch
+from transforms3d.euler import euler2quat
 from scipy.spatial.transform import Rotation
 
 from mani_skill.utils.registration import register_env
@@ -21,7 +22,7 @@ LOCATIONS = ("middle", "left", "right")
 SLOT_Y = {"middle": 0.0, "left": 0.09, "right": -0.09}  # in the rack's frame
 BODY_RADIUS, BODY_HALF = 0.026, 0.06
 NECK_RADIUS, NECK_HALF = 0.011, 0.03
-BOTTLE_DENSITY = 400  # kg/m^3: a 0.17 kg bottle
+BOTTLE_DENSITY = 400  # kg/m^3: a 0.11 kg bottle
 NECK_ALONG_X = [np.cos(np.pi / 4), 0, np.sin(np.pi / 4), 0]  # the bottle's frame lying down: its z (the neck) along x
 RACK_PLATE = (0.08, 0.14, 0.005)   # half sizes
 RAIL_HALF = (0.07, 0.005, 0.0125)  # rails along x
@@ -31,10 +32,6 @@ RAIL_TOP = 2 * RACK_PLATE[2] + 2 * RAIL_HALF[2]
 LYING_Z = RAIL_TOP + np.sqrt(BODY_RADIUS ** 2 - (RAIL_GAP / 2) ** 2)
 
 
-def _yaw_quat(yaw: float) -> list[float]:
-    return [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
-
-
 @register_env("RVT2-PlaceWineAtRackLocation-v1", max_episode_steps=400)
 class PlaceWineAtRackLocationEnv(VariationEnv):
     num_variations = len(LOCATIONS)
@@ -42,9 +39,9 @@ class PlaceWineAtRackLocationEnv(VariationEnv):
     def _build_task(self, options: dict):
         glass = sapien.render.RenderMaterial(base_color=[0.1, 0.35, 0.15, 1.0])
         bottle = self.scene.create_actor_builder()
-        upright = sapien.Pose(q=[np.cos(np.pi / 4), 0, -np.sin(np.pi / 4), 0])  # SAPIEN's cylinders lie along x
+        along_z = sapien.Pose(q=[np.cos(np.pi / 4), 0, -np.sin(np.pi / 4), 0])  # SAPIEN's cylinders lie along x
         for z, radius, half in ((0.0, BODY_RADIUS, BODY_HALF), (BODY_HALF + NECK_HALF, NECK_RADIUS, NECK_HALF)):
-            pose = sapien.Pose([0, 0, z]) * upright
+            pose = sapien.Pose([0, 0, z]) * along_z
             bottle.add_cylinder_collision(pose, radius=radius, half_length=half, density=BOTTLE_DENSITY)
             bottle.add_cylinder_visual(pose, radius=radius, half_length=half, material=glass)
         bottle.initial_pose = sapien.Pose([-0.2, 0, BODY_RADIUS], NECK_ALONG_X)
@@ -65,8 +62,8 @@ class PlaceWineAtRackLocationEnv(VariationEnv):
     def _place_task(self, env_idx, options: dict):
         rng = self._episode_rng
         self.rack.set_pose(Pose.create_from_pq(p=[*rng.uniform([0.06, -0.05], [0.12, 0.05]), 0.0],
-                                               q=_yaw_quat(rng.uniform(-np.pi / 12, np.pi / 12))))
-        lying = sapien.Pose(q=_yaw_quat(rng.uniform(-np.pi / 3, np.pi / 3))) * sapien.Pose(q=NECK_ALONG_X)
+                                               q=euler2quat(0, 0, rng.uniform(-np.pi / 12, np.pi / 12))))
+        lying = sapien.Pose(q=euler2quat(0, 0, rng.uniform(-np.pi / 3, np.pi / 3))) * sapien.Pose(q=NECK_ALONG_X)
         self.bottle.set_pose(Pose.create_from_pq(p=[*rng.uniform([-0.22, -0.15], [-0.12, 0.15]), BODY_RADIUS],
                                                  q=lying.q))
 
@@ -99,6 +96,7 @@ def expert(env, seed=None):
     """Grasp the bottle's body from above, carry it over the named cradle turned along the rack, lower it
     onto the rails, let go and back off upwards. -1 if a motion cannot be planned."""
     from rvt2cli.record.experts import _grasp_from_above, _solver
+    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
 
     env.reset(seed=seed)
     scene = env.unwrapped
@@ -106,11 +104,8 @@ def expert(env, seed=None):
     location = LOCATIONS[scene.variation]
 
     grasp = _grasp_from_above(scene, scene.bottle, at=scene.bottle.pose.sp.p)  # at the body's centre
-    if planner.move_to_pose_with_screw(sapien.Pose(grasp.p + [0, 0, 0.08], grasp.q)) == -1:
+    if not grasp_from_above(planner, grasp):
         return -1
-    if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe
-        return -1
-    planner.close_gripper()
 
     # over the cradle the fingers close across the rack (along its y), whichever way turns the hand least
     rack_y = scene.rack_axes()[:, 1]
@@ -125,12 +120,4 @@ def expert(env, seed=None):
     lifted = sapien.Pose(grasp.p + [0, 0, 0.06], grasp.q)  # clear of the rails (higher, the arm nears a singularity)
     if planner.move_to_pose_with_screw(lifted) == -1:
         return -1
-    for _ in range(2):  # over the cradle, then re-aimed from where the bottle now hangs
-        over = tcp_for(CARRY_M)
-        if planner.move_to_pose_with_screw(over) == -1:
-            return -1
-    lowered = sapien.Pose(over.p - [0, 0, CARRY_M - RELEASE_M], placing)
-    if planner.move_to_pose_with_screw(lowered) == -1:
-        return -1
-    planner.open_gripper()
-    return planner.move_to_pose_with_screw(sapien.Pose(lowered.p + [0, 0, 0.08], placing))
+    return place_from_above(planner, lambda: tcp_for(CARRY_M), CARRY_M - RELEASE_M)
