@@ -1,7 +1,7 @@
 """place_wine_at_rack_location: put the wine bottle in the named slot of the rack (RLBench, 3 variations:
 middle, left, right, in RLBench's order; left is the robot's left, +y).
 
-The bottle (a cylinder with a narrower cylinder for its neck) lies on its side on the table, its neck
+The bottle (a square-sided body with a cylinder for its neck) lies on its side on the table, its neck
 pointing away from the robot within 60 degrees; the rack is a plate with three cradles side by side, each
 two rails along the rack's x on which a bottle lies lengthwise. The task succeeds when the bottle lies in
 the named cradle and the gripper has let it go (RLBench's proximity sensor at that location, and nothing
@@ -20,16 +20,15 @@ from rvt2cli.record.rlbench18.base import VariationEnv
 
 LOCATIONS = ("middle", "left", "right")
 SLOT_Y = {"middle": 0.0, "left": 0.09, "right": -0.09}  # in the rack's frame
-BODY_RADIUS, BODY_HALF = 0.026, 0.06
+BODY_HALF_WIDTH, BODY_HALF = 0.024, 0.06
 NECK_RADIUS, NECK_HALF = 0.011, 0.03
-BOTTLE_DENSITY = 400  # kg/m^3: a 0.11 kg bottle
+BOTTLE_DENSITY = 400  # kg/m^3: a 0.12 kg bottle
 NECK_ALONG_X = [np.cos(np.pi / 4), 0, np.sin(np.pi / 4), 0]  # the bottle's frame lying down: its z (the neck) along x
 RACK_PLATE = (0.08, 0.14, 0.005)   # half sizes
 RAIL_HALF = (0.07, 0.005, 0.0125)  # rails along x
-RAIL_GAP = 0.032                   # m between a cradle's two rails (inner faces)
+RAIL_GAP = 0.032                   # m between a cradle's two rails (inner faces): the body rests on them
 RAIL_TOP = 2 * RACK_PLATE[2] + 2 * RAIL_HALF[2]
-# where a bottle's axis lies in a cradle: above the rails' top by how far its body sinks between them
-LYING_Z = RAIL_TOP + np.sqrt(BODY_RADIUS ** 2 - (RAIL_GAP / 2) ** 2)
+LYING_Z = RAIL_TOP + BODY_HALF_WIDTH  # where a bottle's axis lies in a cradle
 
 
 @register_env("RVT2-PlaceWineAtRackLocation-v1", max_episode_steps=400)
@@ -39,12 +38,16 @@ class PlaceWineAtRackLocationEnv(VariationEnv):
     def _build_task(self, options: dict):
         glass = sapien.render.RenderMaterial(base_color=[0.1, 0.35, 0.15, 1.0])
         bottle = self.scene.create_actor_builder()
-        along_z = sapien.Pose(q=[np.cos(np.pi / 4), 0, -np.sin(np.pi / 4), 0])  # SAPIEN's cylinders lie along x
-        for z, radius, half in ((0.0, BODY_RADIUS, BODY_HALF), (BODY_HALF + NECK_HALF, NECK_RADIUS, NECK_HALF)):
-            pose = sapien.Pose([0, 0, z]) * along_z
-            bottle.add_cylinder_collision(pose, radius=radius, half_length=half, density=BOTTLE_DENSITY)
-            bottle.add_cylinder_visual(pose, radius=radius, half_length=half, material=glass)
-        bottle.initial_pose = sapien.Pose([-0.2, 0, BODY_RADIUS], NECK_ALONG_X)
+        # a square-sided body: the fingers' contacts with a round one (cylinder or capsule, whatever its
+        # friction) jitter the wrist faster than the keyframe rule's rest, so no motion holding it would end
+        # in a keyframe. It lies on a side, so it does not roll either.
+        body = [BODY_HALF_WIDTH, BODY_HALF_WIDTH, BODY_HALF]
+        bottle.add_box_collision(sapien.Pose(), body, density=BOTTLE_DENSITY)
+        bottle.add_box_visual(sapien.Pose(), body, material=glass)
+        neck = sapien.Pose([0, 0, BODY_HALF + NECK_HALF], [np.cos(np.pi / 4), 0, -np.sin(np.pi / 4), 0])  # cylinders lie along x
+        bottle.add_cylinder_collision(neck, radius=NECK_RADIUS, half_length=NECK_HALF, density=BOTTLE_DENSITY)
+        bottle.add_cylinder_visual(neck, radius=NECK_RADIUS, half_length=NECK_HALF, material=glass)
+        bottle.initial_pose = sapien.Pose([-0.2, 0, BODY_HALF_WIDTH], NECK_ALONG_X)
         self.bottle = bottle.build("wine_bottle")  # its frame: the body's centre, z along the neck
 
         wood = sapien.render.RenderMaterial(base_color=[0.55, 0.35, 0.2, 1.0])
@@ -64,7 +67,7 @@ class PlaceWineAtRackLocationEnv(VariationEnv):
         self.rack.set_pose(Pose.create_from_pq(p=[*rng.uniform([0.06, -0.05], [0.12, 0.05]), 0.0],
                                                q=euler2quat(0, 0, rng.uniform(-np.pi / 12, np.pi / 12))))
         lying = sapien.Pose(q=euler2quat(0, 0, rng.uniform(-np.pi / 3, np.pi / 3))) * sapien.Pose(q=NECK_ALONG_X)
-        self.bottle.set_pose(Pose.create_from_pq(p=[*rng.uniform([-0.22, -0.15], [-0.12, 0.15]), BODY_RADIUS],
+        self.bottle.set_pose(Pose.create_from_pq(p=[*rng.uniform([-0.22, -0.15], [-0.12, 0.15]), BODY_HALF_WIDTH],
                                                  q=lying.q))
 
     def slot_centre(self, location: str) -> np.ndarray:
