@@ -1,6 +1,6 @@
 """rvt2-18 tasks insert_onto_square_peg, place_shape_in_shape_sorter, place_wine_at_rack_location and
-light_bulb_in, on the real simulator: each starts unsolved, its expert solves a
-seed, that end state fails another variation's instruction, and the variation leaves the scene alone."""
+light_bulb_in, on the real simulator: each starts unsolved, its expert solves a seed, that end state fails
+another variation's instruction, and the variation leaves the scene alone."""
 
 import pytest
 import torch
