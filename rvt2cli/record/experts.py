@@ -29,6 +29,7 @@ import numpy as np
 
 SCREW_STEP = 0.01     # rad: joint steps of the straight-line motions (ManiSkill's experts use 0.1)
 COARSE_SCREW_STEP = 0.1
+MERE_TURN_RAD = np.radians(0.5)  # a screw motion that fails on a turn this small is retried as a shift
 SETTLE_STEPS = 10     # control steps holding each motion's last command, so the arm rests where it stopped
 FINGER_LENGTH = 0.025
 APPROACH_M = 0.01      # the aligned peg's head stops this far before the hole's face (as ManiSkill's)
@@ -42,6 +43,7 @@ DRAW_BACK_M = 0.20     # ...and moves this far towards the robot's base before t
 
 
 def _solver(env, speed: float):
+    import sapien
     from mani_skill.examples.motionplanning.panda.motionplanner import PandaArmMotionPlanningSolver
 
     class PreciseSolver(PandaArmMotionPlanningSolver):
@@ -49,6 +51,18 @@ def _solver(env, speed: float):
             from mani_skill.utils.structs.pose import to_sapien_pose
 
             target = self._transform_pose_for_planning(to_sapien_pose(pose))
+            result = self._plan(target)
+            if result is None:
+                # mplib's screw motion can fail on the hair's-breadth turn (hundredths of a degree) left between
+                # the orientation the arm holds and the one it was sent to: keep the one it holds
+                here = self.base_env.agent.tcp.pose.sp
+                if (here.inv() * target).to_transformation_matrix()[:3, :3].trace() > 1 + 2 * np.cos(MERE_TURN_RAD):
+                    result = self._plan(sapien.Pose(target.p, here.q))
+            if result is None:
+                return -1
+            return result if dry_run else self.follow_path(result, refine_steps=refine_steps)
+
+        def _plan(self, target):
             for step in (SCREW_STEP, COARSE_SCREW_STEP):  # fine steps check more states: fall back to ManiSkill's
                 try:
                     result = self.planner.plan_screw(np.concatenate([target.p, target.q]),
@@ -58,10 +72,8 @@ def _solver(env, speed: float):
                 except RuntimeError:  # toppra cannot time a path of a few tiny steps ("not controllable")
                     continue
                 if result["status"] == "Success":
-                    break
-            else:
-                return -1
-            return result if dry_run else self.follow_path(result, refine_steps=refine_steps)
+                    return result
+            return None
 
     return PreciseSolver(env, debug=False, vis=False, base_pose=env.unwrapped.agent.robot.pose,
                          visualize_target_grasp_pose=False, print_env_info=False,
