@@ -19,6 +19,7 @@ from mani_skill.utils.registration import register_env
 
 from rvt2cli.record.rlbench18.base import VariationEnv
 from rvt2cli.record.rlbench18.colors import RLBENCH_COLORS, rgba
+from rvt2cli.record.rlbench18.handheld import heading, lower_and_slide, pick_up, tcp_for
 
 COLORS = list(RLBENCH_COLORS)
 NUM_SQUARES = 3
@@ -84,7 +85,6 @@ def _yaw(angle: float) -> list[float]:
 
 GRIP_FROM_END_M = 0.035   # the fingers hold the stick this far from its end nearer the robot...
 RAKE_FROM_GRIP_M = 0.15   # ...and its bar meets the cube this far along it from the fingers
-LIFT_M = 0.10
 HOVER_M = 0.06            # the stick comes down onto the table behind the cube from this high
 CLEARANCE_M = 0.01        # gap between the stick and the cube before the drag (the drag adds it)
 ABOVE_TABLE_M = 0.003     # the stick's underside slides this far above the table
@@ -93,7 +93,7 @@ ABOVE_TABLE_M = 0.003     # the stick's underside slides this far above the tabl
 def expert(env, seed=None):
     """Grasp the stick near its end, lift it, turn it across the way to the target square behind the cube,
     lower it there and drag the cube onto the square. Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _grasp_from_above, _solver
+    from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
@@ -101,44 +101,25 @@ def expert(env, seed=None):
     stick = scene.stick.pose.sp
     along = Rotation.from_quat(stick.q, scalar_first=True).apply([1.0, 0.0, 0.0])
     along = along if along[0] > 0 else -along  # from the end nearer the robot to the far one
-    grasp = _grasp_from_above(scene, scene.stick, at=stick.p - (STICK_HALF[0] - GRIP_FROM_END_M) * along)
-    if planner.move_to_pose_with_screw(grasp * sapien.Pose([0, 0, -LIFT_M])) == -1:
-        return -1
-    if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:
-        return -1
-    planner.close_gripper()
-    lifted = sapien.Pose(grasp.p + [0, 0, LIFT_M], grasp.q)
-    if planner.move_to_pose_with_screw(lifted) == -1:
+    if not pick_up(planner, scene, scene.stick, stick.p - (STICK_HALF[0] - GRIP_FROM_END_M) * along):
         return -1
 
     cube = scene.cube.pose.sp.p
-    goal = scene.squares[scene.target_square].pose.sp.p
-    drag = np.array([*(goal - cube)[:2], 0.0])
+    drag = np.array([*(scene.squares[scene.target_square].pose.sp.p - cube)[:2], 0.0])
     distance = float(np.linalg.norm(drag))
     drag /= distance
-    stick = scene.stick.pose.sp  # as it sits in the hand now
-    stick_rotation = Rotation.from_quat(stick.q, scalar_first=True)
-    along = stick_rotation.apply([1.0, 0.0, 0.0])
-    along = along if along @ (stick.p - scene.agent.tcp.pose.sp.p) > 0 else -along  # from the fingers to the far end
-    stick_in_hand = stick.inv() * scene.agent.tcp.pose.sp  # the TCP in the stick's frame
+    stick = scene.stick.pose.sp  # as it sits in the hand
+    far_end = heading(stick) + (0.0 if np.dot(along, stick.p - scene.agent.tcp.pose.sp.p) > 0 else np.pi)
     contact = cube - drag * (CUBE_HALF + STICK_HALF[1] + CLEARANCE_M)
     contact[2] = STICK_HALF[2] + ABOVE_TABLE_M
     # the stick across the drag, the fingers on the side nearer the robot's base (the arm stretches less), or
     # else on the other
     across = np.array([-drag[1], drag[0], 0.0])
     for across in sorted((across, -across), key=lambda a: -a[0]):
-        turn = Rotation.from_rotvec([0, 0, np.arctan2(across[1], across[0])]) * \
-            Rotation.from_rotvec([0, 0, -np.arctan2(along[1], along[0])])
         centre = contact - (RAKE_FROM_GRIP_M - (STICK_HALF[0] - GRIP_FROM_END_M)) * across
-        stick_goal = sapien.Pose(centre, (turn * stick_rotation).as_quat(scalar_first=True))
-        down = stick_goal * stick_in_hand
-        hover = sapien.Pose(down.p + [0, 0, HOVER_M], down.q)
-        if planner.move_to_pose_with_screw(hover, dry_run=True) != -1:
+        down = tcp_for(scene, scene.stick, centre, np.arctan2(across[1], across[0]) - far_end)
+        if planner.move_to_pose_with_screw(sapien.Pose(down.p + [0, 0, HOVER_M], down.q), dry_run=True) != -1:
             break
     else:
         return -1
-    for pose in (hover, down):
-        if planner.move_to_pose_with_screw(pose) == -1:
-            return -1
-    dragged = sapien.Pose(down.p + drag * (distance + CLEARANCE_M), down.q)
-    return planner.move_to_pose_with_screw(dragged, refine_steps=0)
+    return lower_and_slide(planner, down, drag * (distance + CLEARANCE_M), HOVER_M)
