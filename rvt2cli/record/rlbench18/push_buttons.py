@@ -109,7 +109,8 @@ class PushButtonsEnv(VariationEnv):
         return np.array([[*b.pose.sp.p[:2], CAP_TOP] for b in self.buttons])
 
     def evaluate(self):
-        wanted = list(range(len(variation_colors(self.variation))))  # button i wears the i-th colour
+        # the buttons the current variation names, in order (a colour no button wears: none to press)
+        wanted = [self.button_colors.index(c) if c in self.button_colors else -1 for c in variation_colors(self.variation)]
         return {"success": torch.tensor([self.pressed == wanted]),
                 "wrong_object": torch.tensor([self.pressed != wanted[: len(self.pressed)]]),
                 "buttons_pressed": torch.tensor([len(self.pressed)])}

@@ -46,7 +46,6 @@ class ReachAndDragEnv(VariationEnv):
         target_square = int(rng.randint(NUM_SQUARES))
         others = [c for c in (COLORS[i] for i in rng.permutation(len(COLORS))) if c != target][: NUM_SQUARES - 1]
         self.square_colors = others[:target_square] + [target] + others[target_square:]
-        self.target_square = target_square
         self.squares = [actors.build_box(self.scene, [SQUARE_HALF, SQUARE_HALF, 0.001], rgba(color), f"square{i}",
                                          body_type="kinematic", add_collision=False)
                         for i, color in enumerate(self.square_colors)]
@@ -73,10 +72,16 @@ class ReachAndDragEnv(VariationEnv):
                 return i
         return None
 
+    @property
+    def target_square(self) -> int | None:
+        """The square of the colour the current variation names (None: no square wears it)."""
+        named = COLORS[self.variation]
+        return self.square_colors.index(named) if named in self.square_colors else None
+
     def evaluate(self):
-        on = self._square_under_cube()
-        return {"success": torch.tensor([on == self.target_square]),
-                "wrong_target": torch.tensor([on is not None and on != self.target_square])}
+        on, target = self._square_under_cube(), self.target_square
+        return {"success": torch.tensor([on is not None and on == target]),
+                "wrong_target": torch.tensor([on is not None and on != target])}
 
 
 def _yaw(angle: float) -> list[float]:
