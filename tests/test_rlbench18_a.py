@@ -15,6 +15,7 @@ CASES = {
     "push_buttons": (3, 2, 1, "wrong_object"),  # maroon, green, blue pressed: one too many for "maroon, then green"
     "reach_and_drag": (4, 7, 0, "wrong_target"),  # the cube on the cyan square, not on a red one
     "sweep_to_dustpan_of_size": (6, 1, 0, "wrong_target"),  # the dirt in the short dustpan, not in the tall one
+    "turn_tap": (7, 1, 0, "wrong_object"),  # the right handle turned, not the left
 }
 
 
