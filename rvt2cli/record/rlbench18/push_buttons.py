@@ -17,6 +17,7 @@ import itertools
 import numpy as np
 import sapien
 import torch
+from transforms3d.euler import euler2quat
 
 from mani_skill.utils.registration import register_env
 
@@ -88,7 +89,7 @@ class PushButtonsEnv(VariationEnv):
                 centres.append(xy)
         yaws = rng.uniform(-np.pi / 4, np.pi / 4, size=MAX_BUTTONS)
         for button, (x, y), yaw in zip(self.buttons, centres, yaws):
-            button.set_pose(sapien.Pose([x, y, 0], [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
+            button.set_pose(sapien.Pose([x, y, 0], euler2quat(0, 0, yaw)))
             button.set_qpos(torch.zeros((1, 1)))
             button.set_qvel(torch.zeros((1, 1)))
             button.active_joints[0].set_drive_target(PRELOAD)

@@ -13,6 +13,7 @@ import numpy as np
 import sapien
 import torch
 from scipy.spatial.transform import Rotation
+from transforms3d.euler import euler2quat
 
 from mani_skill.utils.building import actors
 from mani_skill.utils.registration import register_env
@@ -55,12 +56,12 @@ class ReachAndDragEnv(VariationEnv):
     def _place_task(self, env_idx, options: dict):
         rng = self._episode_rng
         cube = np.array([rng.uniform(*CUBE_X), rng.uniform(*CUBE_Y)])
-        self.cube.set_pose(sapien.Pose([*cube, CUBE_HALF], _yaw(rng.uniform(-np.pi / 4, np.pi / 4))))
+        self.cube.set_pose(sapien.Pose([*cube, CUBE_HALF], euler2quat(0, 0, rng.uniform(-np.pi / 4, np.pi / 4))))
         for square, angle in zip(self.squares, DRAG_ANGLES + rng.uniform(-ANGLE_JITTER, ANGLE_JITTER, NUM_SQUARES)):
             xy = cube + rng.uniform(*DRAG_M) * np.array([-np.cos(angle), np.sin(angle)])
             square.set_pose(sapien.Pose([*xy, 0.001]))
         stick = [rng.uniform(*STICK_X), rng.uniform(*STICK_Y), STICK_HALF[2]]
-        self.stick.set_pose(sapien.Pose(stick, _yaw(rng.uniform(-STICK_YAW, STICK_YAW))))
+        self.stick.set_pose(sapien.Pose(stick, euler2quat(0, 0, rng.uniform(-STICK_YAW, STICK_YAW))))
 
     def _square_under_cube(self) -> int | None:
         """The square the cube rests on (its centre within the square, on the table), if any."""
@@ -82,10 +83,6 @@ class ReachAndDragEnv(VariationEnv):
         on, target = self._square_under_cube(), self.target_square
         return {"success": torch.tensor([on is not None and on == target]),
                 "wrong_target": torch.tensor([on is not None and on != target])}
-
-
-def _yaw(angle: float) -> list[float]:
-    return [np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]
 
 
 GRIP_FROM_END_M = 0.035   # the fingers hold the stick this far from its end nearer the robot...

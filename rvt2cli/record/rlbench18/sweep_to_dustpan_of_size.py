@@ -11,6 +11,7 @@ side holds the tall one), their floors painted on the table so that the dirt sli
 import numpy as np
 import sapien
 import torch
+from transforms3d.euler import euler2quat
 
 from mani_skill.utils.registration import register_env
 
@@ -20,7 +21,7 @@ from rvt2cli.record.rlbench18.handheld import heading, lower_and_slide, pick_up,
 SIZES = ("tall", "short")
 WALL_HEIGHTS = {"tall": 0.09, "short": 0.03}  # m: the dustpans' walls
 PAN_WIDTH, PAN_DEPTH, WALL_HALF = 0.17, 0.10, 0.005  # m: inside the walls; wall half thickness
-PAN_RGBA = {"tall": [0.1, 0.35, 0.8, 1.0], "short": [0.1, 0.35, 0.8, 1.0]}  # one colour: only the size tells them apart
+PAN_RGBA = [0.1, 0.35, 0.8, 1.0]  # both dustpans: only their size tells them apart
 NUM_DIRT, DIRT_HALF = 5, 0.0075
 DIRT_RGBA = [0.46, 0.31, 0.31, 1.0]  # RLBench's dirt
 DIRT_SPREAD = 0.025                  # m: the dirt lies within this of its centre (both axes)
@@ -60,7 +61,7 @@ class SweepToDustpanOfSizeEnv(VariationEnv):
         middle of the opening, on the table."""
         height = WALL_HEIGHTS[size]
         builder = self.scene.create_actor_builder()
-        material = sapien.render.RenderMaterial(base_color=PAN_RGBA[size])
+        material = sapien.render.RenderMaterial(base_color=PAN_RGBA)
         walls = [(sapien.Pose([PAN_DEPTH + WALL_HALF, 0, height / 2]), [WALL_HALF, PAN_WIDTH / 2 + 2 * WALL_HALF, height / 2])]
         for side in (-1, 1):
             walls.append((sapien.Pose([PAN_DEPTH / 2, side * (PAN_WIDTH / 2 + WALL_HALF), height / 2]),
@@ -68,7 +69,7 @@ class SweepToDustpanOfSizeEnv(VariationEnv):
         for pose, half in walls:
             builder.add_box_collision(pose, half)
             builder.add_box_visual(pose, half, material=material)
-        floor = [0.5 * c for c in PAN_RGBA[size][:3]] + [1.0]
+        floor = [0.5 * c for c in PAN_RGBA[:3]] + [1.0]
         builder.add_box_visual(sapien.Pose([PAN_DEPTH / 2, 0, 0.001]), [PAN_DEPTH / 2, PAN_WIDTH / 2, 0.001],
                                material=sapien.render.RenderMaterial(base_color=floor))
         builder.initial_pose = sapien.Pose()
@@ -79,14 +80,14 @@ class SweepToDustpanOfSizeEnv(VariationEnv):
         centre = np.array([rng.uniform(*DIRT_X), rng.uniform(*DIRT_Y)])
         for piece in self.dirt:
             xy = centre + rng.uniform(-DIRT_SPREAD, DIRT_SPREAD, 2)
-            piece.set_pose(sapien.Pose([*xy, DIRT_HALF], _yaw(rng.uniform(-np.pi, np.pi))))
+            piece.set_pose(sapien.Pose([*xy, DIRT_HALF], euler2quat(0, 0, rng.uniform(-np.pi, np.pi))))
         tall_side = rng.choice([-1, 1])
         for size, side in zip(SIZES, (tall_side, -tall_side)):  # each opens towards the dirt
             bearing = side * PAN_BEARING
             opening = [*(centre + PAN_OPENING_M * np.array([np.cos(bearing), np.sin(bearing)])), 0]
-            self.dustpans[size].set_pose(sapien.Pose(opening, _yaw(bearing)))
+            self.dustpans[size].set_pose(sapien.Pose(opening, euler2quat(0, 0, bearing)))
         broom = [rng.uniform(*BROOM_X), rng.uniform(*BROOM_Y), HEAD_HALF[2]]
-        self.broom.set_pose(sapien.Pose(broom, _yaw(rng.uniform(-BROOM_YAW, BROOM_YAW))))
+        self.broom.set_pose(sapien.Pose(broom, euler2quat(0, 0, rng.uniform(-BROOM_YAW, BROOM_YAW))))
 
     def dirt_in(self, size: str) -> np.ndarray:
         """[5]: which pieces of dirt lie inside this dustpan (between its walls, past its opening)."""
@@ -101,10 +102,6 @@ class SweepToDustpanOfSizeEnv(VariationEnv):
         named, other = SIZES[self.variation], SIZES[1 - self.variation]
         return {"success": torch.tensor([bool(self.dirt_in(named).all())]),
                 "wrong_target": torch.tensor([bool(self.dirt_in(other).any())])}
-
-
-def _yaw(angle: float) -> list[float]:
-    return [np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]
 
 
 GRIP_FROM_END_M = 0.025   # the fingers hold the handle this far from its end

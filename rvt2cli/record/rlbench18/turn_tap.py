@@ -11,6 +11,7 @@ where it is left by friction.
 import numpy as np
 import sapien
 import torch
+from transforms3d.euler import euler2quat
 
 from mani_skill.utils.registration import register_env
 
@@ -71,7 +72,7 @@ class TurnTapEnv(VariationEnv):
     def _place_task(self, env_idx, options: dict):
         rng = self._episode_rng
         yaw = rng.uniform(-TAP_YAW, TAP_YAW)
-        self.tap.set_pose(sapien.Pose([rng.uniform(*TAP_X), rng.uniform(*TAP_Y), 0], [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
+        self.tap.set_pose(sapien.Pose([rng.uniform(*TAP_X), rng.uniform(*TAP_Y), 0], euler2quat(0, 0, yaw)))
         self.tap.set_qpos(torch.zeros((1, len(SIDES))))
         self.tap.set_qvel(torch.zeros((1, len(SIDES))))
 
@@ -116,7 +117,7 @@ def expert(env, seed=None):
         return -1
     planner.close_gripper()
     for way in (1.0, -1.0):
-        turned = grasp * sapien.Pose(q=[np.cos(way * TURN_RAD / 2), 0, 0, np.sin(way * TURN_RAD / 2)])
+        turned = grasp * sapien.Pose(q=euler2quat(0, 0, way * TURN_RAD))
         if planner.move_to_pose_with_screw(turned, dry_run=True) != -1:
             break
     else:
