@@ -31,6 +31,13 @@ def _success(env) -> bool:
     return bool(env.unwrapped.evaluate()["success"].item())
 
 
+def test_toml_lists_the_environments_variations(task_env):
+    task, env = task_env
+    assert task.num_variations == env.unwrapped.num_variations > 1
+    assert "rlbench18" in task.task_sets and task.paraphrases
+    assert len(set(task.all_instructions())) > len(task.instructions)  # the variations' instructions differ
+
+
 def test_not_solved_at_reset(task_env):
     task, env = task_env
     for variation in (0, task.num_variations - 1):

@@ -97,9 +97,18 @@ TURN_RAD = np.radians(100.0)  # a quarter turn and a little more: the fingers gi
 ABOVE_M = 0.08
 
 
+def _quickest(planner, poses):
+    """Of these poses, the one the planner reaches in the fewest control steps from where the arm stands (None:
+    it reaches none). Either way round a lever can look alike, but not to the wrist: one way may leave it too
+    little room, or a path the planner times at a crawl."""
+    plans = [(len(plan["position"]), i) for i, plan in enumerate(planner.move_to_pose_with_screw(p, dry_run=True) for p in poses)
+             if not (isinstance(plan, int) and plan == -1)]
+    return poses[min(plans)[1]] if plans else None
+
+
 def expert(env, seed=None):
-    """Grasp the named handle's lever over its hinge from above, turn it a quarter turn (either way, which the
-    wrist can), let go and back off upwards. Returns -1 when a motion cannot be planned."""
+    """Grasp the named handle's lever over its hinge from above, turn it a quarter turn (whichever way the
+    wrist turns it quicker), let go and back off upwards. Returns -1 when a motion cannot be planned."""
     from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
@@ -107,22 +116,16 @@ def expert(env, seed=None):
     planner = _solver(env, speed=0.9)
     lever = scene.lever_pose(SIDES[scene.variation])
     across = lever.to_transformation_matrix()[:3, 0]  # the lever runs along its y: the fingers close along its x
-    now = scene.agent.tcp.pose.to_transformation_matrix()[0, :3, 1].cpu().numpy()
-    closing = across if across @ now >= 0 else -across  # the nearer way round for the wrist
-    grasp = scene.agent.build_grasp_pose(np.array([0.0, 0.0, -1.0]), closing, lever.p)
-    above = sapien.Pose(grasp.p + [0, 0, ABOVE_M], grasp.q)
-    if planner.move_to_pose_with_screw(above) == -1:
+    grasps = [scene.agent.build_grasp_pose(np.array([0.0, 0.0, -1.0]), closing, lever.p) for closing in (across, -across)]
+    above = _quickest(planner, [sapien.Pose(g.p + [0, 0, ABOVE_M], g.q) for g in grasps])
+    if above is None or planner.move_to_pose_with_screw(above) == -1:
         return -1
+    grasp = sapien.Pose(lever.p, above.q)
     if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe
         return -1
     planner.close_gripper()
-    for way in (1.0, -1.0):
-        turned = grasp * sapien.Pose(q=euler2quat(0, 0, way * TURN_RAD))
-        if planner.move_to_pose_with_screw(turned, dry_run=True) != -1:
-            break
-    else:
-        return -1
-    if planner.move_to_pose_with_screw(turned) == -1:
+    turned = _quickest(planner, [grasp * sapien.Pose(q=euler2quat(0, 0, way * TURN_RAD)) for way in (1.0, -1.0)])
+    if turned is None or planner.move_to_pose_with_screw(turned) == -1:
         return -1
     planner.open_gripper()
     return planner.move_to_pose_with_screw(sapien.Pose(turned.p + [0, 0, ABOVE_M], turned.q))
