@@ -11,9 +11,12 @@ COLORS = (
     ("white", (1.0, 1.0, 1.0)),
 )
 
+RLBENCH_COLORS = dict(COLORS)  # name -> rgb
 
-def rgba(index: int) -> list[float]:
-    return [*COLORS[index][1], 1.0]
+
+def rgba(colour: int | str) -> list[float]:
+    """A colour by its index in RLBench's order or by its name."""
+    return [*(RLBENCH_COLORS[colour] if isinstance(colour, str) else COLORS[int(colour)][1]), 1.0]
 
 
 def colour_rng(env) -> np.random.Generator:
