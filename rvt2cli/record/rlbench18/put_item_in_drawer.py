@@ -20,8 +20,8 @@ from rvt2cli.record.rlbench18.open_drawer import PULL_M, CabinetEnv, pull_open
 ITEM_HALF = 0.02                # m: the block's half size
 ITEM_COLOUR = (0.1, 0.45, 0.85, 1)
 ITEM_BESIDE = (0.24, 0.28)      # m: the block lies this far across from the cabinet's middle...
-ITEM_X = (-0.25, -0.15)         # ...at this world x, nearer the robot than an open drawer's front
-BACK_OFF_M = 0.10               # the open hand leaves the opened handle the way it came, this far
+ITEM_X = (-0.20, -0.08)         # ...at this world x
+BACK_OFF_M = 0.10               # the open hand rises this far off the opened handle, then turns to point down
 LIFT_M = 0.08                   # the open hand waits this far above the block
 DROP_ABOVE_M = 0.03             # the block is let go this far above the drawer's walls
 
@@ -65,8 +65,8 @@ class PutItemInDrawerEnv(CabinetEnv):
 
 
 def expert(env, seed=None):
-    """Open the named drawer (open_drawer's motions), let go of its handle and back off, pick the block from
-    above, lift it to just above the drawer's walls, carry it over the drawer's open part and let go."""
+    """Open the named drawer (open_drawer's motions), let go of its handle, rise and turn the hand down, pick
+    the block from above, lift it to just above the drawer's walls, carry it over the drawer's open part and let go."""
     env.reset(seed=seed)
     scene = env.unwrapped
     planner = _solver(env, speed=0.75)
@@ -74,10 +74,15 @@ def expert(env, seed=None):
     if pull_open(planner, scene, drawer) == -1:
         return -1
     planner.open_gripper()
-    if planner.move_to_pose_with_screw(scene.agent.tcp.pose.sp * sapien.Pose([0, 0, -BACK_OFF_M])) == -1:
+    risen = sapien.Pose([0, 0, BACK_OFF_M]) * scene.agent.tcp.pose.sp
+    if planner.move_to_pose_with_screw(risen) == -1:
         return -1
-
     grasp = _grasp_from_above(scene, scene.item)
+    if planner.move_to_pose_with_screw(sapien.Pose(risen.p, grasp.q)) == -1:
+        return -1
+    # level over to the block first, at the height the hand rose to: a slanting path would clip the open drawer
+    if planner.move_to_pose_with_screw(sapien.Pose([*grasp.p[:2], risen.p[2]], grasp.q)) == -1:
+        return -1
     if planner.move_to_pose_with_screw(sapien.Pose([0, 0, LIFT_M]) * grasp) == -1:
         return -1
     if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:   # the arrival and the grasp: one keyframe
