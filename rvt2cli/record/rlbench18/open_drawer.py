@@ -66,17 +66,21 @@ class OpenDrawerEnv(CabinetEnv):
         return {"success": named, "wrong_target": others.any(dim=1) & ~named}
 
 
-def handle_grasp(scene, drawer: int, opened: float = 0.0) -> sapien.Pose:
-    """The TCP pose gripping this drawer's handle with the drawer open `opened` m: the hand pointing into the
-    cabinet, tilted down GRIP_PITCH, the fingers closing across the cabinet (the side nearest the way they
-    face now)."""
-    turn = scene.cabinet.pose.sp.to_transformation_matrix()[:3, :3]
+def tilted_grasp(scene, frame: sapien.Pose, centre) -> sapien.Pose:
+    """The TCP pose at `centre` pointing along `frame`'s x, tilted down GRIP_PITCH, the fingers closing along
+    `frame`'s y (the way round nearest the way they face now)."""
+    turn = frame.to_transformation_matrix()[:3, :3]
     approaching = turn @ [np.cos(GRIP_PITCH), 0.0, -np.sin(GRIP_PITCH)]
     closing = turn @ [0.0, 1.0, 0.0]
     now = scene.agent.tcp.pose.to_transformation_matrix()[0, :3, 1].cpu().numpy()
-    closing = closing if closing @ now >= 0 else -closing
+    return scene.agent.build_grasp_pose(approaching, closing if closing @ now >= 0 else -closing, centre)
+
+
+def handle_grasp(scene, drawer: int, opened: float = 0.0) -> sapien.Pose:
+    """The TCP pose gripping this drawer's handle with the drawer open `opened` m: pointing into the cabinet,
+    tilted down, the fingers closing across the bar."""
     centre = scene.in_cabinet_frame(cabinet.handle_centre(drawer) - [opened, 0, 0]).p
-    return scene.agent.build_grasp_pose(approaching, closing, centre)
+    return tilted_grasp(scene, scene.cabinet.pose.sp, centre)
 
 
 def pull_open(planner, scene, drawer: int):

@@ -15,7 +15,7 @@ from mani_skill.utils.structs import Pose
 
 from rvt2cli.record.experts import _solver
 from rvt2cli.record.rlbench18.base import VariationEnv
-from rvt2cli.record.rlbench18.open_drawer import GRIP_PITCH
+from rvt2cli.record.rlbench18.open_drawer import tilted_grasp
 
 SHELVES = ("bottom", "middle", "top")          # RLBench's order (its variation index)
 # The safe's frame: origin on the table under the middle of its open front, x into the safe, z up.
@@ -101,16 +101,6 @@ class PutMoneyInSafeEnv(VariationEnv):
         return {"success": named, "wrong_target": on_shelf.any(dim=1) & ~on_shelf[:, self.variation]}
 
 
-def _tilted_grasp(scene, frame: sapien.Pose, centre) -> sapien.Pose:
-    """The TCP pose at `centre` pointing along `frame`'s x, tilted down GRIP_PITCH, the fingers closing
-    across (the side nearest the way they face now)."""
-    turn = frame.to_transformation_matrix()[:3, :3]
-    approaching = turn @ [np.cos(GRIP_PITCH), 0.0, -np.sin(GRIP_PITCH)]
-    closing = turn @ [0.0, 1.0, 0.0]
-    now = scene.agent.tcp.pose.to_transformation_matrix()[0, :3, 1].cpu().numpy()
-    return scene.agent.build_grasp_pose(approaching, closing if closing @ now >= 0 else -closing, centre)
-
-
 def expert(env, seed=None):
     """Grip the notes across their middle, from behind and above; lift them; hold them level before the
     named shelf; slide them in; let go; push them further in by their end with the closed fingers; back off."""
@@ -119,7 +109,7 @@ def expert(env, seed=None):
     planner = _solver(env, speed=0.75)
     money = scene.money.pose.sp
     grip = money * sapien.Pose([0, 0, GRIP_HEIGHT_M - MONEY_HALF[2]])
-    grasp = _tilted_grasp(scene, sapien.Pose(q=money.q), grip.p)
+    grasp = tilted_grasp(scene, sapien.Pose(q=money.q), grip.p)
     above = sapien.Pose(grasp.p + [0, 0, LIFT_M], grasp.q)
     if planner.move_to_pose_with_screw(above) == -1:
         return -1
@@ -135,18 +125,18 @@ def expert(env, seed=None):
     behind_end = in_hand.p[0] + MONEY_HALF[0]
     safe = scene.safe.pose.sp
     height = shelf_floor(scene.variation) + CLEAR_M + below_tcp
-    before = _tilted_grasp(scene, safe, scene.in_safe_frame([-behind_end - 0.03, 0, height]).p)
-    inside = _tilted_grasp(scene, safe, scene.in_safe_frame([ENTER_M, 0, height]).p)
+    before = tilted_grasp(scene, safe, scene.in_safe_frame([-behind_end - 0.03, 0, height]).p)
+    inside = tilted_grasp(scene, safe, scene.in_safe_frame([ENTER_M, 0, height]).p)
     if planner.move_to_pose_with_screw(before) == -1:
         return -1
     if planner.move_to_pose_with_screw(inside) == -1:
         return -1
     planner.open_gripper()
     end = (safe.inv() * scene.money.pose.sp).p[0] - MONEY_HALF[0]    # the notes' end, as they now lie
-    behind = _tilted_grasp(scene, safe, scene.in_safe_frame([end - 0.02, 0, height]).p)
+    behind = tilted_grasp(scene, safe, scene.in_safe_frame([end - 0.02, 0, height]).p)
     if planner.move_to_pose_with_screw(behind) == -1:
         return -1
     planner.close_gripper()
-    if planner.move_to_pose_with_screw(_tilted_grasp(scene, safe, scene.in_safe_frame([end + PUSH_M, 0, height]).p)) == -1:
+    if planner.move_to_pose_with_screw(tilted_grasp(scene, safe, scene.in_safe_frame([end + PUSH_M, 0, height]).p)) == -1:
         return -1
     return planner.move_to_pose_with_screw(behind)
