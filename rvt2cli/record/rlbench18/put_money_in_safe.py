@@ -33,6 +33,8 @@ MONEY_YAW = np.pi / 8                          # ...turned at most this much fro
 # weight), this high above the table, the hand tilted down like open_drawer's.
 GRIP_HEIGHT_M = 0.02
 LIFT_M = 0.08
+LINE_UP_M = 0.06               # the notes line up with the shelf this far before the safe: nearer, their way
+                               # there from beside the safe can clip its front
 # The tilted hand's centre enters a shelf no further than about 1.5 cm before the hand meets the shelf above:
 # the expert lets go of the notes there, with their middle just inside, and pushes them in by their end.
 ENTER_M = 0.015
@@ -125,7 +127,7 @@ def expert(env, seed=None):
     behind_end = in_hand.p[0] + MONEY_HALF[0]
     safe = scene.safe.pose.sp
     height = shelf_floor(scene.variation) + CLEAR_M + below_tcp
-    before = tilted_grasp(scene, safe, scene.in_safe_frame([-behind_end - 0.03, 0, height]).p)
+    before = tilted_grasp(scene, safe, scene.in_safe_frame([-behind_end - LINE_UP_M, 0, height]).p)
     inside = tilted_grasp(scene, safe, scene.in_safe_frame([ENTER_M, 0, height]).p)
     if planner.move_to_pose_with_screw(before) == -1:
         return -1
