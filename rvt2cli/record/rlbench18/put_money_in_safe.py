@@ -20,7 +20,7 @@ from rvt2cli.record.rlbench18.open_drawer import tilted_grasp
 SHELVES = ("bottom", "middle", "top")          # RLBench's order (its variation index)
 # The safe's frame: origin on the table under the middle of its open front, x into the safe, z up.
 WIDTH, DEPTH = 0.26, 0.18                      # m: outer size across (y) and deep (x)
-PLINTH, WALL, SLOT = 0.05, 0.01, 0.12          # m: what it stands on, its walls and shelves, one shelf's height
+PLINTH, WALL, SLOT = 0.07, 0.01, 0.12          # m: what it stands on, its walls and shelves, one shelf's height
 HEIGHT = PLINTH + 4 * WALL + 3 * SLOT
 SAFE_X = (0.03, 0.09)                          # m: the safe's front, world x
 SAFE_Y = (-0.12, 0.12)
@@ -121,13 +121,13 @@ def expert(env, seed=None):
     if planner.move_to_pose_with_screw(above) == -1:
         return -1
 
-    # where the TCP sits against the notes' underside and near end, as they now lie in the hand
+    # where the TCP sits against the notes' underside and far end, as they now lie in the hand
     in_hand = scene.money.pose.sp.inv() * scene.agent.tcp.pose.sp
     below_tcp = in_hand.p[2] + MONEY_HALF[2]
-    behind_end = in_hand.p[0] + MONEY_HALF[0]
+    reach_ahead = MONEY_HALF[0] - in_hand.p[0]
     safe = scene.safe.pose.sp
     height = shelf_floor(scene.variation) + CLEAR_M + below_tcp
-    before = tilted_grasp(scene, safe, scene.in_safe_frame([-behind_end - LINE_UP_M, 0, height]).p)
+    before = tilted_grasp(scene, safe, scene.in_safe_frame([-reach_ahead - LINE_UP_M, 0, height]).p)
     inside = tilted_grasp(scene, safe, scene.in_safe_frame([ENTER_M, 0, height]).p)
     if planner.move_to_pose_with_screw(before) == -1:
         return -1
