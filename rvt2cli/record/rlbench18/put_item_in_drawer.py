@@ -23,6 +23,7 @@ ITEM_BESIDE = (0.24, 0.28)      # m: the block lies this far across from the cab
 ITEM_X = (-0.20, -0.08)         # ...at this world x
 BACK_OFF_M = 0.10               # the open hand rises this far off the opened handle, turning to point down
 LIFT_M = 0.08                   # the open hand waits this far above the block
+LONGEST_STEPS = 300             # control steps: a 10 cm motion planned longer than this swings through a singular pose
 DROP_ABOVE_M = 0.03             # the block is let go this far above the drawer's walls
 
 
@@ -75,9 +76,15 @@ def expert(env, seed=None):
         return -1
     planner.open_gripper()
     # rising and turning in one motion: rising alone passes near a singular pose in some scenes (a 10 cm rise
-    # took 1372 control steps in one of 20)
+    # took 1372 control steps in one of 20). Where this one does too, back off the way the hand came first.
     grasp = _grasp_from_above(scene, scene.item)
     risen = sapien.Pose(scene.agent.tcp.pose.sp.p + [0, 0, BACK_OFF_M], grasp.q)
+    plan = planner.move_to_pose_with_screw(risen, dry_run=True)
+    if plan == -1 or len(plan["position"]) > LONGEST_STEPS:
+        backed = scene.agent.tcp.pose.sp * sapien.Pose([0, 0, -BACK_OFF_M])
+        if planner.move_to_pose_with_screw(backed) == -1:
+            return -1
+        risen = sapien.Pose(backed.p, grasp.q)
     if planner.move_to_pose_with_screw(risen) == -1:
         return -1
     # level over to the block first, at the height the hand rose to: a slanting path would clip the open drawer
