@@ -51,7 +51,11 @@ def _build_grill(scene):
 
 def _build_chicken(scene):
     builder = scene.create_actor_builder()
-    builder.add_capsule_collision(radius=CHICKEN_RADIUS, half_length=CHICKEN_HALF_LENGTH)
+    # grippy and light: a pinched round body of plain material trembles in the hand, and the arm never
+    # comes to rest while carrying it (no keyframe where the carry ends)
+    builder.add_capsule_collision(radius=CHICKEN_RADIUS, half_length=CHICKEN_HALF_LENGTH, density=100,
+                                  material=sapien.physx.PhysxMaterial(static_friction=2.0, dynamic_friction=2.0,
+                                                                      restitution=0.0))
     builder.add_capsule_visual(radius=CHICKEN_RADIUS, half_length=CHICKEN_HALF_LENGTH,
                                material=sapien.render.RenderMaterial(base_color=COLOURS["chicken"]))
     builder.initial_pose = sapien.Pose([0, 0.3, CHICKEN_RADIUS])
