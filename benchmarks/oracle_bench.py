@@ -74,6 +74,9 @@ def main() -> None:
     errors = {kind: result.report[key]["oracle"] for kind, key in
               (("all", "pose_error"), ("free", "pose_error_free"), ("contact", "pose_error_contact"))}
     for kind, e in errors.items():
+        if not e["keyframes"]:  # e.g. no keyframe made in contact (open_drawer): no error to summarise
+            print(f"{kind} oracle keyframes (0)")
+            continue
         print(f"{kind} oracle keyframes ({e['keyframes']}): error at rest {e['position_mm']['median']:.2f} mm median, "
               f"{e['position_mm']['p95']:.2f} mm p95; {e['rotation_deg']['median']:.3f} deg median, "
               f"{e['rotation_deg']['p95']:.3f} deg p95")
