@@ -1,0 +1,111 @@
+"""stack_blocks: stack 2, 3 or 4 blocks of the named colour on the square target (RLBench's 60 variations:
+20 colours x 3 heights).
+
+Four blocks wear the instruction's colour and four distractors one other colour, drawn from the seed. The
+seed alone places the blocks and the target square; the variation chooses the colours and the height.
+Success: exactly the asked number of target-coloured blocks stand on the square (RLBench counts at least
+that many; exactly makes the number in the instruction matter), static, and the gripper holds nothing.
+"""
+
+import numpy as np
+import sapien
+import torch
+
+from mani_skill.utils.building import actors
+from mani_skill.utils.registration import register_env
+
+from rvt2cli.record.rlbench18.base import VariationEnv
+from rvt2cli.record.rlbench18.colors import COLORS, other_color, rgba
+from rvt2cli.record.rlbench18.layout import scatter
+
+HEIGHTS = (2, 3, 4)             # blocks per tower: the variation is colour index * 3 + height index
+BLOCKS = 4                      # of the target colour, and as many distractors
+HALF = 0.02                     # m: half a block's side
+SQUARE_HALF = 0.035             # m: half the target square's side; a block stands on it when its centre is over it
+SQUARE_COLOR = [1.0, 0.85, 0.7, 1.0]  # pale peach: no colour an instruction names, and unlike the table
+REGION = ((-0.22, -0.25), (0.12, 0.25))  # m: where blocks and the square lie (reachable, inside the scene bounds)
+BLOCK_SPACING = 0.09            # m between block centres: the open gripper fits between neighbours
+SQUARE_CLEARANCE = 0.13         # m from the square's centre to any block: the tower's approach stays clear
+
+
+@register_env("RVT2-StackBlocks-v1", max_episode_steps=1000)
+class StackBlocksEnv(VariationEnv):
+    num_variations = len(COLORS) * len(HEIGHTS)
+
+    @property
+    def target_color(self) -> int:
+        return self.variation // len(HEIGHTS)
+
+    @property
+    def height(self) -> int:
+        return HEIGHTS[self.variation % len(HEIGHTS)]
+
+    def _build_task(self, options):
+        self.distractor_color = other_color(self._episode_rng, self.target_color)
+        self.targets = [actors.build_cube(self.scene, HALF, rgba(self.target_color), f"target_block_{i}",
+                                          initial_pose=sapien.Pose(p=[0.5, i * 0.1, HALF])) for i in range(BLOCKS)]
+        self.distractors = [actors.build_cube(self.scene, HALF, rgba(self.distractor_color), f"distractor_block_{i}",
+                                              initial_pose=sapien.Pose(p=[0.6, i * 0.1, HALF])) for i in range(BLOCKS)]
+        self.square = actors.build_box(self.scene, [SQUARE_HALF, SQUARE_HALF, 0.0005], SQUARE_COLOR, "target_square",
+                                       body_type="kinematic", add_collision=False,
+                                       initial_pose=sapien.Pose(p=[0.5, -0.2, 0.0005]))
+
+    def _place_task(self, env_idx, options):
+        rng = self._episode_rng
+        square = scatter(rng, 1, *REGION, spacing=0)[0]
+        self.square.set_pose(sapien.Pose(p=[*square, 0.0005]))
+        blocks = scatter(rng, 2 * BLOCKS, *REGION, spacing=BLOCK_SPACING, clear_of=[square], clearance=SQUARE_CLEARANCE)
+        yaws = rng.uniform(0, np.pi / 2, size=2 * BLOCKS)
+        for block, xy, yaw in zip(self.targets + self.distractors, blocks, yaws):
+            block.set_pose(sapien.Pose(p=[*xy, HALF], q=[np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
+
+    def _on_square(self, block) -> torch.Tensor:
+        offset = block.pose.p - self.square.pose.p
+        return (offset[:, :2].abs() <= SQUARE_HALF).all(dim=1) & (offset[:, 2] < 2 * HALF * (BLOCKS + 1))
+
+    def evaluate(self):
+        stacked = torch.stack([self._on_square(b) & b.is_static(lin_thresh=1e-2, ang_thresh=0.5)
+                               for b in self.targets]).sum(dim=0)
+        grasping = torch.stack([self.agent.is_grasping(b) for b in self.targets + self.distractors]).any(dim=0)
+        wrong = torch.stack([self._on_square(b) | self.agent.is_grasping(b) for b in self.distractors]).any(dim=0)
+        return {"success": (stacked == self.height) & ~grasping, "stacked": stacked, "wrong_object": wrong}
+
+
+CARRY_CLEARANCE = 0.08  # m: a carried block's bottom passes this far over the tower's top
+DROP = 0.004            # m: a block is let go this far above where it comes to rest
+
+
+def expert(env, seed=None):
+    """Pick the target blocks one by one (the nearest to the square first) and stack them on the square:
+    reach above, grasp, lift, carry over the tower, lower, let go, back up; every motion ends at rest.
+    Returns -1 when a motion cannot be planned."""
+    from rvt2cli.record.experts import _grasp_from_above, _solver
+
+    env.reset(seed=seed)
+    scene = env.unwrapped
+    planner = _solver(env, speed=0.9)
+    square = scene.square.pose.sp.p
+    blocks = sorted(scene.targets, key=lambda b: np.linalg.norm(b.pose.sp.p[:2] - square[:2]))[:scene.height]
+    result = -1
+    for level, block in enumerate(blocks):
+        grasp = _grasp_from_above(scene, block)
+        carry_z = 2 * HALF * (level + 1) + CARRY_CLEARANCE  # the carried block's centre, m
+        if planner.move_to_pose_with_screw(grasp * sapien.Pose([0, 0, -0.05])) == -1:
+            return -1
+        if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # arrival and grasp: one keyframe
+            return -1
+        planner.close_gripper()
+        block_in_hand = block.pose.sp.p - grasp.p  # the block's centre from the TCP, world axes
+        lifted = sapien.Pose([grasp.p[0], grasp.p[1], carry_z - block_in_hand[2]], grasp.q)
+        above = sapien.Pose([*(square[:2] - block_in_hand[:2]), lifted.p[2]], grasp.q)
+        down = sapien.Pose([above.p[0], above.p[1], HALF + 2 * HALF * level + DROP - block_in_hand[2]], grasp.q)
+        for pose in (lifted, above):
+            if planner.move_to_pose_with_screw(pose) == -1:
+                return -1
+        if planner.move_to_pose_with_screw(down, refine_steps=0) == -1:  # arrival and release: one keyframe
+            return -1
+        planner.open_gripper()
+        result = planner.move_to_pose_with_screw(above)
+        if result == -1:
+            return -1
+    return result
