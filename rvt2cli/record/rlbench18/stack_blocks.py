@@ -17,6 +17,7 @@ from mani_skill.utils.registration import register_env
 from rvt2cli.record.rlbench18.base import VariationEnv
 from rvt2cli.record.rlbench18.colors import COLORS, other_color, rgba
 from rvt2cli.record.rlbench18.layout import scatter
+from rvt2cli.record.rlbench18.motions import pick_and_place
 
 HEIGHTS = (2, 3, 4)             # blocks per tower: the variation is colour index * 3 + height index
 BLOCKS = 4                      # of the target colour, and as many distractors
@@ -71,15 +72,13 @@ class StackBlocksEnv(VariationEnv):
         return {"success": (stacked == self.height) & ~grasping, "stacked": stacked, "wrong_object": wrong}
 
 
-CARRY_CLEARANCE = 0.08  # m: a carried block's bottom passes this far over the tower's top
-DROP = 0.004            # m: a block is let go this far above where it comes to rest
+CARRY_CLEARANCE = 0.08  # m: a carried block's centre passes this far over the top of the tower it completes
 
 
 def expert(env, seed=None):
-    """Pick the target blocks one by one (the nearest to the square first) and stack them on the square:
-    reach above, grasp, lift, carry over the tower, lower, let go, back up; every motion ends at rest.
+    """Pick the target blocks one by one (the nearest to the square first) and stack them on the square.
     Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _grasp_from_above, _solver
+    from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
@@ -88,24 +87,8 @@ def expert(env, seed=None):
     blocks = sorted(scene.targets, key=lambda b: np.linalg.norm(b.pose.sp.p[:2] - square[:2]))[:scene.height]
     result = -1
     for level, block in enumerate(blocks):
-        grasp = _grasp_from_above(scene, block)
-        carry_z = 2 * HALF * (level + 1) + CARRY_CLEARANCE  # the carried block's centre, m
-        if planner.move_to_pose_with_screw(grasp * sapien.Pose([0, 0, -0.05])) == -1:
-            return -1
-        if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # arrival and grasp: one keyframe
-            return -1
-        planner.close_gripper()
-        block_in_hand = block.pose.sp.p - grasp.p  # the block's centre from the TCP, world axes
-        lifted = sapien.Pose([grasp.p[0], grasp.p[1], carry_z - block_in_hand[2]], grasp.q)
-        above = sapien.Pose([*(square[:2] - block_in_hand[:2]), lifted.p[2]], grasp.q)
-        down = sapien.Pose([above.p[0], above.p[1], HALF + 2 * HALF * level + DROP - block_in_hand[2]], grasp.q)
-        for pose in (lifted, above):
-            if planner.move_to_pose_with_screw(pose) == -1:
-                return -1
-        if planner.move_to_pose_with_screw(down, refine_steps=0) == -1:  # arrival and release: one keyframe
-            return -1
-        planner.open_gripper()
-        result = planner.move_to_pose_with_screw(above)
+        goal = [square[0], square[1], HALF + 2 * HALF * level]
+        result = pick_and_place(planner, scene, block, goal, carry_z=2 * HALF * (level + 1) + CARRY_CLEARANCE)
         if result == -1:
             return -1
     return result
