@@ -3,7 +3,7 @@
 Two jars stand on the table, one wearing the instruction's colour and one another colour drawn from the
 seed; which of the two wears it follows the variation's parity, as in RLBench. The lid lies upright on
 the table. It is placed, not screwed: a cap whose skirt drops over the jar's neck with 6 mm to spare.
-Success: the lid sits on the named jar's neck, still, and the gripper holds nothing.
+Success: the lid sits on the named jar's neck and the gripper holds nothing.
 """
 
 import numpy as np
@@ -93,8 +93,7 @@ class CloseJarEnv(VariationEnv):
 
     def evaluate(self):
         held = self.agent.is_grasping(self.lid)
-        still = self.lid.is_static(lin_thresh=1e-2, ang_thresh=0.5)
-        return {"success": self._closes(self.target_jar) & still & ~held,
+        return {"success": self._closes(self.target_jar) & ~held,
                 "wrong_target": self._closes(self.other_jar) & ~held}
 
 

@@ -4,7 +4,7 @@
 Four blocks wear the instruction's colour and four distractors one other colour, drawn from the seed. The
 seed alone places the blocks and the target square; the variation chooses the colours and the height.
 Success: exactly the asked number of target-coloured blocks stand on the square (RLBench counts at least
-that many; exactly makes the number in the instruction matter), static, and the gripper holds nothing.
+that many; exactly makes the number in the instruction matter) and the gripper holds nothing.
 """
 
 import numpy as np
@@ -65,8 +65,8 @@ class StackBlocksEnv(VariationEnv):
         return (offset[:, :2].abs() <= SQUARE_HALF).all(dim=1) & (offset[:, 2] < 2 * HALF * (BLOCKS + 1))
 
     def evaluate(self):
-        stacked = torch.stack([self._on_square(b) & b.is_static(lin_thresh=1e-2, ang_thresh=0.5)
-                               for b in self.targets]).sum(dim=0)
+        # no stillness test: PhysX leaves a resting tower's blocks a few cm/s of velocity it never damps
+        stacked = torch.stack([self._on_square(b) for b in self.targets]).sum(dim=0)
         grasping = torch.stack([self.agent.is_grasping(b) for b in self.targets + self.distractors]).any(dim=0)
         wrong = torch.stack([self._on_square(b) | self.agent.is_grasping(b) for b in self.distractors]).any(dim=0)
         return {"success": (stacked == self.height) & ~grasping, "stacked": stacked, "wrong_object": wrong}
