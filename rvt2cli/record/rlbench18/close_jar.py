@@ -67,18 +67,16 @@ class CloseJarEnv(VariationEnv):
 
     def _build_task(self, options):
         other = other_color(self._episode_rng, self.variation)
-        colors = [other, other]
-        colors[self.variation % 2] = self.variation
-        self.jars = [_build_jar(self.scene, rgba(c), f"jar_{i}") for i, c in enumerate(colors)]
+        self.jar_colors = [other, other]
+        self.jar_colors[self.variation % 2] = self.variation
+        self.jars = [_build_jar(self.scene, rgba(c), f"jar_{i}") for i, c in enumerate(self.jar_colors)]
         self.lid = _build_lid(self.scene, "lid")
 
     @property
-    def target_jar(self):
-        return self.jars[self.variation % 2]
-
-    @property
-    def other_jar(self):
-        return self.jars[1 - self.variation % 2]
+    def target_jars(self) -> list:
+        """The jars wearing the instruction's colour (by the colours the scene was built with: after a
+        change of variation, the jars that the new instruction names, if any)."""
+        return [j for j, c in zip(self.jars, self.jar_colors) if c == self.variation]
 
     def _place_task(self, env_idx, options):
         jar_0, jar_1, lid = scatter(self._episode_rng, 3, *REGION, spacing=SPACING)
@@ -93,8 +91,9 @@ class CloseJarEnv(VariationEnv):
 
     def evaluate(self):
         held = self.agent.is_grasping(self.lid)
-        return {"success": self._closes(self.target_jar) & ~held,
-                "wrong_target": self._closes(self.other_jar) & ~held}
+        named = [self._closes(j) & (c == self.variation) for j, c in zip(self.jars, self.jar_colors)]
+        other = [self._closes(j) & (c != self.variation) for j, c in zip(self.jars, self.jar_colors)]
+        return {"success": torch.stack(named).any(dim=0) & ~held, "wrong_target": torch.stack(other).any(dim=0) & ~held}
 
 
 def expert(env, seed=None):
@@ -105,6 +104,6 @@ def expert(env, seed=None):
     env.reset(seed=seed)
     scene = env.unwrapped
     planner = _solver(env, speed=0.9)
-    jar = scene.target_jar.pose.sp.p
+    jar = scene.target_jars[0].pose.sp.p
     return pick_and_place(planner, scene, scene.lid, [jar[0], jar[1], CLOSED_Z],
                           carry_z=BODY_HEIGHT + NECK_HEIGHT + CARRY_CLEARANCE)

@@ -42,11 +42,11 @@ class StackBlocksEnv(VariationEnv):
         return HEIGHTS[self.variation % len(HEIGHTS)]
 
     def _build_task(self, options):
-        self.distractor_color = other_color(self._episode_rng, self.target_color)
-        self.targets = [actors.build_cube(self.scene, HALF, rgba(self.target_color), f"target_block_{i}",
-                                          initial_pose=sapien.Pose(p=[0.5, i * 0.1, HALF])) for i in range(BLOCKS)]
-        self.distractors = [actors.build_cube(self.scene, HALF, rgba(self.distractor_color), f"distractor_block_{i}",
-                                              initial_pose=sapien.Pose(p=[0.6, i * 0.1, HALF])) for i in range(BLOCKS)]
+        distractor = other_color(self._episode_rng, self.target_color)
+        self.block_colors = [self.target_color] * BLOCKS + [distractor] * BLOCKS
+        self.blocks = [actors.build_cube(self.scene, HALF, rgba(c), f"block_{i}",
+                                         initial_pose=sapien.Pose(p=[0.5, i * 0.1, HALF]))
+                       for i, c in enumerate(self.block_colors)]
         self.square = actors.build_box(self.scene, [SQUARE_HALF, SQUARE_HALF, 0.0005], SQUARE_COLOR, "target_square",
                                        body_type="kinematic", add_collision=False,
                                        initial_pose=sapien.Pose(p=[0.5, -0.2, 0.0005]))
@@ -55,21 +55,30 @@ class StackBlocksEnv(VariationEnv):
         rng = self._episode_rng
         square = scatter(rng, 1, *REGION, spacing=0)[0]
         self.square.set_pose(sapien.Pose(p=[*square, 0.0005]))
-        blocks = scatter(rng, 2 * BLOCKS, *REGION, spacing=BLOCK_SPACING, clear_of=[square], clearance=SQUARE_CLEARANCE)
-        yaws = rng.uniform(0, np.pi / 2, size=2 * BLOCKS)
-        for block, xy, yaw in zip(self.targets + self.distractors, blocks, yaws):
+        blocks = scatter(rng, len(self.blocks), *REGION, spacing=BLOCK_SPACING, clear_of=[square],
+                         clearance=SQUARE_CLEARANCE)
+        yaws = rng.uniform(0, np.pi / 2, size=len(self.blocks))
+        for block, xy, yaw in zip(self.blocks, blocks, yaws):
             block.set_pose(sapien.Pose(p=[*xy, HALF], q=[np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
+
+    @property
+    def targets(self) -> list:
+        """The blocks wearing the instruction's colour (by the colours the scene was built with: after a
+        change of variation, the blocks that the new instruction names, if any)."""
+        return [b for b, c in zip(self.blocks, self.block_colors) if c == self.target_color]
 
     def _on_square(self, block) -> torch.Tensor:
         offset = block.pose.p - self.square.pose.p
         return (offset[:, :2].abs() <= SQUARE_HALF).all(dim=1) & (offset[:, 2] < 2 * HALF * (BLOCKS + 1))
 
     def evaluate(self):
+        on_square = torch.stack([self._on_square(b) for b in self.blocks])  # [blocks, envs]
+        named = torch.tensor([c == self.target_color for c in self.block_colors])[:, None]
         # no stillness test: PhysX leaves a resting tower's blocks a few cm/s of velocity it never damps
-        stacked = torch.stack([self._on_square(b) for b in self.targets]).sum(dim=0)
-        grasping = torch.stack([self.agent.is_grasping(b) for b in self.targets + self.distractors]).any(dim=0)
-        wrong = torch.stack([self._on_square(b) | self.agent.is_grasping(b) for b in self.distractors]).any(dim=0)
-        return {"success": (stacked == self.height) & ~grasping, "stacked": stacked, "wrong_object": wrong}
+        stacked = (on_square & named).sum(dim=0)
+        grasped = torch.stack([self.agent.is_grasping(b) for b in self.blocks])
+        wrong = ((on_square | grasped) & ~named).any(dim=0)
+        return {"success": (stacked == self.height) & ~grasped.any(dim=0), "stacked": stacked, "wrong_object": wrong}
 
 
 CARRY_CLEARANCE = 0.08  # m: a carried block's centre passes this far over the top of the tower it completes
