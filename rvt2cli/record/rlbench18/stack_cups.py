@@ -81,12 +81,12 @@ class StackCupsEnv(VariationEnv):
         return (torch.linalg.norm(offset[:, :2], dim=1) <= INSIDE_XY) & (offset[:, 2] > 0) & (offset[:, 2] < HEIGHT + NEST)
 
     def evaluate(self):
-        stacked = torch.zeros(1, dtype=torch.bool)
-        for base in self.base_cups:  # RLBench's: both other cups inside the named one
-            others = [cup for cup in self.cups if cup is not base]
-            stacked = stacked | torch.stack([self._inside(cup, base) for cup in others]).all(dim=0)
+        # RLBench's: both other cups inside the named one; inside a cup of another colour is the wrong target
+        bases = torch.stack([torch.stack([self._inside(cup, base) for cup in self.cups if cup is not base]).all(dim=0)
+                             for base in self.cups])  # [cups, envs]
+        named = torch.tensor([c == self.variation for c in self.cup_colors])[:, None]
         held = torch.stack([self.agent.is_grasping(cup) for cup in self.cups]).any(dim=0)
-        return {"success": stacked & ~held}
+        return {"success": (bases & named).any(dim=0) & ~held, "wrong_target": (bases & ~named).any(dim=0) & ~held}
 
 
 def _rim_grasp(scene, cup):
