@@ -38,7 +38,7 @@ def _yaw(angle: float) -> list[float]:
     return [np.cos(angle / 2), 0, 0, np.sin(angle / 2)]
 
 
-def _build_cup(scene, color, name):
+def build_cup(scene, color, name):
     builder = scene.create_actor_builder()
     material = sapien.render.RenderMaterial(base_color=color)
     bottom = sapien.Pose([0, 0, WALL / 2], _UPRIGHT)
@@ -63,7 +63,7 @@ class StackCupsEnv(VariationEnv):
     def _build_task(self, options):
         rng = self._episode_rng
         self.cup_colors = [self.variation, other_color(rng, self.variation), other_color(rng, self.variation)]
-        self.cups = [_build_cup(self.scene, rgba(c), f"cup_{i}") for i, c in enumerate(self.cup_colors)]
+        self.cups = [build_cup(self.scene, rgba(c), f"cup_{i}") for i, c in enumerate(self.cup_colors)]
 
     def _place_task(self, env_idx, options):
         for cup, xy in zip(self.cups, scatter(self._episode_rng, len(self.cups), *REGION, spacing=SPACING)):
