@@ -1,6 +1,6 @@
-"""rvt2-18's stack_blocks, close_jar, stack_cups and place_cups on the real simulator: a fresh scene is not already solved, the
-expert solves one seed, its end state fails another variation's instruction, and a seed lays out the same
-scene in every variation. One env per task, small cameras."""
+"""rvt2-18's stack_blocks, close_jar, stack_cups and place_cups on the real simulator: a fresh scene is not
+already solved, the expert solves one seed, its end state fails another variation's instruction, and a seed
+lays out the same scene in every variation. One env per task, small cameras."""
 
 import numpy as np
 import pytest

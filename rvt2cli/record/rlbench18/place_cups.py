@@ -103,7 +103,8 @@ def expert(env, seed=None):
         free = [p for p in free if p is not peg]
         top = BOARD_TOP + holder[2] + HEIGHT  # the cup's origin (its bottom, upturned) once it stands on the board
         grasp = _grasp_from_above(scene, cup, at=cup.pose.sp.p - [0, 0, GRIP_BELOW_TOP])
-        result = pick_and_place(planner, scene, cup, [*peg, top], carry_z=top + PEG_HEIGHT + CARRY_CLEARANCE, grasp=grasp)
+        result = pick_and_place(planner, scene, cup, [*peg, top], carry_z=top + PEG_HEIGHT + CARRY_CLEARANCE,
+                                grasp=grasp)
         if result == -1:
             return -1
     return result

@@ -78,7 +78,8 @@ class StackCupsEnv(VariationEnv):
     def _inside(self, cup, base) -> torch.Tensor:
         offset = cup.pose.p - base.pose.p
         # ...and its bottom lies inside the named cup, or inside the cup nested in it
-        return (torch.linalg.norm(offset[:, :2], dim=1) <= INSIDE_XY) & (offset[:, 2] > 0) & (offset[:, 2] < HEIGHT + NEST)
+        near_axis = torch.linalg.norm(offset[:, :2], dim=1) <= INSIDE_XY
+        return near_axis & (offset[:, 2] > 0) & (offset[:, 2] < HEIGHT + NEST)
 
     def evaluate(self):
         # RLBench's: both other cups inside the named one; inside a cup of another colour is the wrong target
@@ -116,8 +117,8 @@ def expert(env, seed=None):
     for level, cup in enumerate(others, start=1):
         under = base.pose.sp.p
         goal = [under[0], under[1], under[2] + level * NEST + RELEASE_ABOVE - DROP]  # pick_and_place adds DROP
-        result = pick_and_place(planner, scene, cup, goal, carry_z=under[2] + HEIGHT + (level - 1) * NEST + CARRY_CLEARANCE,
-                                grasp=_rim_grasp(scene, cup))
+        rim = under[2] + HEIGHT + (level - 1) * NEST  # the stack's rim, m
+        result = pick_and_place(planner, scene, cup, goal, carry_z=rim + CARRY_CLEARANCE, grasp=_rim_grasp(scene, cup))
         if result == -1:
             return -1
     return result
