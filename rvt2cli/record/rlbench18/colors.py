@@ -12,6 +12,7 @@ COLORS = (
 )
 
 RLBENCH_COLORS = dict(COLORS)  # name -> rgb
+COLOR_NAMES = tuple(RLBENCH_COLORS)
 
 
 def rgba(colour: int | str) -> list[float]:
@@ -30,3 +31,10 @@ def distractor_colours(rng: np.random.Generator, target: int, count: int) -> lis
     """`count` different colours other than the target's, as RLBench draws them."""
     others = [i for i in range(len(COLORS)) if i != target]
     return [int(i) for i in rng.choice(others, size=count, replace=False)]
+
+
+def other_color(rng, target: int) -> int:
+    """A colour other than `target`, drawn with one draw from `rng` whatever `target` is (so the draws that
+    follow, e.g. the layout's, do not depend on the variation)."""
+    pick = int(rng.randint(len(COLORS) - 1))
+    return pick + (pick >= target)
