@@ -3,7 +3,10 @@ reset), its variations, instructions, held-out paraphrases, success condition (f
 docstring) and the expert's and the oracle's success as `benchmarks/oracle_bench.py --json` measured them.
 
     python scripts/task_docs.py [--tasks a,b | --task-set rlbench18] [--results oracle.json ...]
-                                [--out docs/TASKS.md] [--images docs/img/tasks] [--seed 0]
+                                [--development runs.json] [--out docs/TASKS.md] [--images docs/img/tasks] [--seed 0]
+
+--development adds what was measured while a task was built (benchmarks/results/rlbench18_cpu/
+development_runs.json), labelled as such, beside the oracle_bench results.
 """
 
 import argparse
@@ -60,6 +63,15 @@ def measured(results: list[dict]) -> dict[str, list[str]]:
     return out
 
 
+def development(path: str | None) -> dict[str, list[str]]:
+    """Per task, the line of a development-runs file (expert and oracle counts with their seeds)."""
+    if not path:
+        return {}
+    runs = json.loads(Path(path).read_text())
+    return {task: [f"while it was built: expert {r['expert']}, oracle {r['oracle']} ({runs['machine']}, {runs['date']})"]
+            for task, r in runs["tasks"].items()}
+
+
 def section(task, env_class, picture: str, success: list[str]) -> str:
     lines = [f"## {task.name}", "", f"![{task.name}]({picture})", "",
              f"Environment `{task.env_id}`, expert `{task.expert}`, {task.max_steps} control steps at most"
@@ -91,12 +103,15 @@ def main() -> None:
     parser.add_argument("--tasks", help="comma-separated (default: every task)")
     parser.add_argument("--task-set")
     parser.add_argument("--results", nargs="*", default=[], help="JSON files of benchmarks/oracle_bench.py --json")
+    parser.add_argument("--development", help="a JSON of expert and oracle counts measured while the tasks were built")
     parser.add_argument("--out", default="docs/TASKS.md")
     parser.add_argument("--images", default="docs/img/tasks")
     parser.add_argument("--seed", type=int, default=0, help="the seed of every picture's scene (variation 0)")
     args = parser.parse_args()
     names = args.tasks.split(",") if args.tasks else tasks_of_set(args.task_set) if args.task_set else list(all_tasks())
     results = measured([json.loads(Path(p).read_text()) for p in args.results])
+    for task, lines in development(args.development).items():
+        results.setdefault(task, []).extend(lines)
     out, images = Path(args.out), Path(args.images)
     images.mkdir(parents=True, exist_ok=True)
     tasks = [all_tasks()[n] for n in names]
