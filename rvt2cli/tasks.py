@@ -124,7 +124,7 @@ def _parse(text: str, source: str) -> Task:
         raise UserError(f"{source}: held_out_variations leaves no variation to record; hold out fewer")
     try:
         task.all_instructions()
-        [p.format(**task.variation_values(v)) for v in range(task.num_variations) for p in task.paraphrases]
+        task.all_paraphrases()
     except KeyError as e:
         raise UserError(f"{source}: instruction uses {{{e.args[0]}}} but [variables] does not define it") from None
     return task

@@ -27,6 +27,9 @@ class VariationEnv(BaseEnv):
 
     def __init__(self, *args, robot_uids="panda", robot_init_qpos_noise=0.02, **kwargs):
         self.robot_init_qpos_noise = robot_init_qpos_noise
+        # a variation may colour the objects when the scene is built: build it at every reset (make_env does
+        # too), or a change of variation would keep the first episode's colours
+        kwargs.setdefault("reconfiguration_freq", 1)
         super().__init__(*args, robot_uids=robot_uids, **kwargs)
 
     def reset(self, seed=None, options=None):
