@@ -48,8 +48,7 @@ def test_not_solved_at_reset(task_env):
 def test_expert_solves_and_the_solution_is_not_another_variations(task_env):
     task, env = task_env
     seed, variation, other, flag = CASES[task.name]
-    env.unwrapped.variation = variation
-    run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+    run = run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation)
     assert run.status == "success", (task.name, run.status, len(run.frames))
     env.unwrapped.variation = other
     info = env.unwrapped.evaluate()

@@ -72,8 +72,7 @@ def test_expert_solves_its_variation_and_no_other(task_env):
 
     task, env = task_env
     seed, variation, other, flag = CASES[task.name]
-    env.unwrapped.variation = variation
-    run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+    run = run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation)
     assert run.status == "success", (task.name, run.status, len(run.frames))
     assert env.unwrapped.evaluate()["success"].item()
     env.unwrapped.variation = other

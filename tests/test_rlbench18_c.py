@@ -54,8 +54,7 @@ def test_a_fresh_scene_is_not_solved(case):
 
 def test_the_expert_solves_its_variation_and_not_another(case):
     task, env, seed, variation, other = case
-    env.unwrapped.variation = variation
-    run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+    run = run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation)
     assert run.status == "success", run.status
     info = env.unwrapped.evaluate()
     assert not _wrong(info)

@@ -45,8 +45,7 @@ def test_unsolved_at_reset_and_the_variation_leaves_the_scene_alone(task_env):
 
 def test_expert_solves_its_variation_and_not_another(task_env):
     task, env, (seed, variation, other) = task_env
-    env.unwrapped.variation = variation
-    run = run_expert(env, task.expert, seed, max_frames=task.max_steps)
+    run = run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation)
     assert run.status == "success" and _success(env)
     env.unwrapped.variation = other
     assert not _success(env), f"{task.name}: the end state of variation {variation} also solves variation {other}"
