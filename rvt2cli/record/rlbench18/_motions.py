@@ -8,9 +8,12 @@ REACH_ABOVE_M = 0.08  # the open hand arrives this far above its grasp, then com
 RETREAT_M = 0.08      # after letting go the hand backs off this far upwards
 
 
-def grasp_from_above(planner, grasp: sapien.Pose) -> bool:
-    """Come down onto `grasp` and close the gripper. False if a motion cannot be planned."""
-    if planner.move_to_pose_with_screw(sapien.Pose(grasp.p + [0, 0, REACH_ABOVE_M], grasp.q)) == -1:
+def grasp_from_above(planner, grasp: sapien.Pose, above: sapien.Pose | None = None) -> bool:
+    """Arrive at `above` (default: REACH_ABOVE_M over `grasp`), come down onto `grasp` and close the gripper.
+    False if a motion cannot be planned."""
+    if above is None:
+        above = sapien.Pose(grasp.p + [0, 0, REACH_ABOVE_M], grasp.q)
+    if planner.move_to_pose_with_screw(above) == -1:
         return False
     if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe
         return False

@@ -11,14 +11,11 @@ LIFT_M = 0.10   # the tool rises this far after the grasp (and the fingers come 
 def pick_up(planner, scene, tool, grip) -> bool:
     """Grasp `tool` from above with the fingers closing across it at the point `grip`, and lift it."""
     from rvt2cli.record.experts import _grasp_from_above
+    from rvt2cli.record.rlbench18._motions import grasp_from_above
 
     grasp = _grasp_from_above(scene, tool, at=grip)
-    if planner.move_to_pose_with_screw(sapien.Pose(grasp.p + [0, 0, LIFT_M], grasp.q)) == -1:
-        return False
-    if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe
-        return False
-    planner.close_gripper()
-    return planner.move_to_pose_with_screw(sapien.Pose(grasp.p + [0, 0, LIFT_M], grasp.q)) != -1
+    lifted = sapien.Pose(grasp.p + [0, 0, LIFT_M], grasp.q)
+    return grasp_from_above(planner, grasp, above=lifted) and planner.move_to_pose_with_screw(lifted) != -1
 
 
 def heading(pose: sapien.Pose, axis=(1.0, 0.0, 0.0)) -> float:

@@ -16,6 +16,7 @@ from mani_skill.utils.structs import Pose
 
 from rvt2cli.record.experts import _grasp_from_above, _solver
 from rvt2cli.record.rlbench18.base import VariationEnv
+from rvt2cli.record.rlbench18._motions import grasp_from_above
 
 MEATS = ("chicken", "steak")                  # RLBench's order (its variation index)
 GRILL_HALF = (0.08, 0.13, 0.04)               # m: the grill's half sizes (x deep, y across, z high)
@@ -115,12 +116,7 @@ def expert(env, seed=None):
     grasp = _grasp_from_above(scene, meat, at=meat.pose.sp.p)
     grill_top = scene.grill.pose.sp.p[2] + GRILL_HALF[2]
     lifted = sapien.Pose([*grasp.p[:2], grill_top + LIFT_M], grasp.q)
-    if planner.move_to_pose_with_screw(lifted) == -1:
-        return -1
-    if planner.move_to_pose_with_screw(grasp, refine_steps=0) == -1:   # the arrival and the grasp: one keyframe
-        return -1
-    planner.close_gripper()
-    if planner.move_to_pose_with_screw(lifted) == -1:
+    if not grasp_from_above(planner, grasp, above=lifted) or planner.move_to_pose_with_screw(lifted) == -1:
         return -1
     height = grasp.p[2] - grill_top                 # the grasp's height above what the meat lies on
     down = scene.grill.pose.sp * sapien.Pose([0, -PUT_DOWN_Y, -GRILL_HALF[2]])
