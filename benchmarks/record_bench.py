@@ -68,8 +68,9 @@ def main() -> None:
     if args.quick:
         names, seeds, episodes = ["push_cube", "insert_peg"], 2, 1
     results = {"machine": describe(), "expert": [], "throughput": None}
-    print("| task | expert success | per variation | seeds | mean frames | s/episode (no rendering) |\n|---|---|---|---|---|---|")
-    for name in names:
+    if seeds:
+        print("| task | expert success | per variation | seeds | mean frames | s/episode (no rendering) |\n|---|---|---|---|---|---|")
+    for name in names if seeds else []:
         r = expert_success(all_tasks()[name], seeds, args.first_seed)
         results["expert"].append(r)
         spread = " ".join(f"{v}:{rate:.2f}" for v, rate in r["per_variation"].items())
