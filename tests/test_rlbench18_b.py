@@ -1,7 +1,8 @@
-"""rvt2-18's drawer, grill and safe tasks on the real simulator: open_drawer, put_item_in_drawer,
-meat_off_grill and put_money_in_safe. For each: a fresh scene is not solved in any variation; the
-expert solves one seed; that end state is no success for another variation (and is flagged as the
-wrong drawer, shelf or meat); and the seed alone lays out the scene, whatever the variation."""
+"""rvt2-18's drawer, grill, safe and cupboard tasks on the real simulator: open_drawer, put_item_in_drawer,
+meat_off_grill, put_money_in_safe and put_groceries_in_cupboard. For each: a fresh scene is not solved in
+any variation; the expert solves one seed; that end state is no success for another variation (and is
+flagged as the wrong drawer, shelf, meat or grocery); and the seed alone lays out the scene, whatever the
+variation."""
 
 import pytest
 import torch
@@ -12,6 +13,7 @@ CASES = {
     "put_item_in_drawer": (10002, 0, 1, "wrong_target"),  # bottom drawer; judged as the middle one
     "meat_off_grill": (10001, 1, 0, "wrong_object"),      # steak; judged as the chicken
     "put_money_in_safe": (10004, 1, 2, "wrong_target"),   # middle shelf; judged as the top one
+    "put_groceries_in_cupboard": (10005, 5, 0, "wrong_object"),  # the spam; judged as the crackers
 }
 
 
