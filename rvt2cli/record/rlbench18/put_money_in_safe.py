@@ -20,7 +20,8 @@ from rvt2cli.record.rlbench18.open_drawer import tilted_grasp
 SHELVES = ("bottom", "middle", "top")          # RLBench's order (its variation index)
 # The safe's frame: origin on the table under the middle of its open front, x into the safe, z up.
 WIDTH, DEPTH = 0.26, 0.18                      # m: outer size across (y) and deep (x)
-PLINTH, WALL, SLOT = 0.07, 0.01, 0.12          # m: what it stands on, its walls and shelves, one shelf's height
+PLINTH, WALL, SLOT = 0.07, 0.01, 0.14          # m: what it stands on, its walls and shelves, one shelf's height
+# (14 cm: room above the notes, carried CLEAR_M over the shelf, for the tilted hand to reach ENTER_M in)
 HEIGHT = PLINTH + 4 * WALL + 3 * SLOT
 SAFE_X = (0.03, 0.09)                          # m: the safe's front, world x
 SAFE_Y = (-0.12, 0.12)
@@ -35,10 +36,14 @@ GRIP_HEIGHT_M = 0.02
 LIFT_M = 0.08
 LINE_UP_M = 0.06               # the notes line up with the shelf this far before the safe: nearer, their way
                                # there from beside the safe can clip its front
-# The tilted hand's centre enters a shelf no further than about 1.5 cm before the hand meets the shelf above:
+# The tilted hand's centre enters a shelf only about 1.5 cm before the hand comes near the shelf above:
 # the expert lets go of the notes there, with their middle just inside, and pushes them in by their end.
 ENTER_M = 0.015
-CLEAR_M = 0.005                # the notes slide in this far above the shelf
+# The notes slide in this far above the shelf. The arm comes to rest about 3 mm below the poses the expert asks
+# for with the notes in the hand, and replayed keyframes dip a millimetre more on the way: at 5 mm the notes
+# cleared the shelf's front edge by about 1 mm and, replayed, their leading edge caught on it, the notes
+# slid back in the fingers and fell out in front of the safe when let go.
+CLEAR_M = 0.015
 PUSH_M = 0.04                  # the closed fingers push the notes' end this far into the shelf
 
 SAFE_COLOUR = (0.35, 0.37, 0.4, 1)
