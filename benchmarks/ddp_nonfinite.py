@@ -12,8 +12,10 @@ network outside DDP, and eagerly, and records which loss terms are finite in eac
 only inside DDP's forward and goes away outside it is in how the compiled graphs run under DDP; one that
 repeats eagerly is in the data or the weights.
 
-`--ddp-graphs split` compiles as torch does by default under DDP (Dynamo's DDPOptimizer cuts each
-compiled graph at DDP's gradient buckets), `whole` keeps one graph per compiled module.
+`--ddp-graphs whole` (the default) compiles as `rvt2 train` does, one graph per compiled module; `split`
+as torch does by default under DDP (Dynamo's DDPOptimizer cuts each compiled graph at DDP's gradient
+buckets). On 2 x H200 with experiments/ddp_2tasks.toml's data, split skipped 27 of 300 steps and whole
+none (docs/BENCHMARKS.md).
 Per process, in the JSON: the steps, the non-finite steps with their terms and the reruns.
 """
 
@@ -26,7 +28,6 @@ import time
 
 import numpy as np
 import torch
-import torch._dynamo
 
 from rvt2cli.model.loss import policy_loss
 
@@ -50,7 +51,8 @@ def main() -> None:
     parser.add_argument("--data", nargs="+", required=True)
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--batch-size", type=int, default=96)
-    parser.add_argument("--ddp-graphs", choices=("split", "whole"), default="split")
+    parser.add_argument("--ddp-graphs", choices=("split", "whole"), default="whole",
+                        help="whole: as rvt2 train compiles under DDP (default); split: torch's default, which the fault needs")
     parser.add_argument("--no-compile", action="store_true")
     parser.add_argument("--no-amp", action="store_true")
     parser.add_argument("--train-args", default="", help="more `rvt2 train` options, e.g. \"--aim-held\"")
@@ -69,8 +71,7 @@ def main() -> None:
 
     from rvt2cli.train.trainer import setup_training
 
-    torch._dynamo.config.optimize_ddp = args.ddp_graphs == "split"
-    setup = setup_training(opts, say=print)
+    setup = setup_training(opts, say=print, ddp_graph_split=args.ddp_graphs == "split")
     rank, world, policy, model, step_fn, batches = (setup.rank, setup.world, setup.policy, setup.model,
                                                     setup.train_step, setup.batches)
     cfg = policy.cfg

@@ -427,3 +427,40 @@ def test_task_set_trains_on_the_sets_episodes_only(tiny_dataset, tmp_path, cli):
     r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "set", "--task-set", "nope", "--config", "small",
             "--steps", "2", "--no-progress")
     assert_one_line_error(r, "unknown task set 'nope'")
+
+
+def test_compiled_policy_under_ddp_is_traced_as_whole_graphs(tiny_dataset, tmp_path):
+    """Under DistributedDataParallel, rvt2 compiles each stage as one graph: Dynamo's default cut at DDP's
+    gradient buckets gave non-finite bf16 losses on 2 x H200 (rvt2cli.train.trainer.data_parallel). The
+    wrapped, compiled policy computes what the policy computes alone."""
+    import torch._dynamo
+    import torch.distributed as dist
+
+    from rvt2cli.model.config import get_config
+    from rvt2cli.model.policy import RVT2Policy
+    from rvt2cli.train.batches import BatchStream
+    from rvt2cli.train.trainer import data_parallel, load_data
+
+    cfg = get_config("small")
+    opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "x"), **TINY_TRAIN)
+    packed = load_data(opts, cfg, torch.device("cpu"), False, None, lambda *_: None).packed
+    batch = next(BatchStream(packed, cfg, torch.Generator().manual_seed(0), 2))
+    torch.manual_seed(0)
+    policy = RVT2Policy(cfg, render_backend="torch")
+    with policy.eager():
+        expected = policy(batch.obs, batch.position, batch.rot_bins, batch.stage2_center)
+    default = torch._dynamo.config.optimize_ddp
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        torch._dynamo.reset()
+        policy.compile_network()
+        model = data_parallel(policy, torch.device("cpu"))
+        assert torch._dynamo.config.optimize_ddp is False
+        got = model(batch.obs, batch.position, batch.rot_bins, batch.stage2_center)
+        for name, value in expected.items():
+            if isinstance(value, torch.Tensor) and value.is_floating_point():
+                torch.testing.assert_close(got[name], value, rtol=1e-4, atol=1e-4, msg=name)
+    finally:
+        dist.destroy_process_group()
+        torch._dynamo.config.optimize_ddp = default
+        torch._dynamo.reset()

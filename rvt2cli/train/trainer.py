@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch._dynamo
 from tqdm import tqdm
 
 from rvt2cli.atomic import atomic_open, check_folder_can_be_made, ensure_folder
@@ -395,7 +396,22 @@ class TrainingSetup:
     total_batch: int
 
 
-def setup_training(opts: TrainOptions, say=print) -> TrainingSetup:
+def data_parallel(policy: RVT2Policy, device: torch.device, split_graphs: bool = False) -> torch.nn.Module:
+    """The policy under DistributedDataParallel, its compiled parts each traced as one graph.
+
+    By default Dynamo cuts every compiled graph under DDP at DDP's gradient buckets (its DDPOptimizer,
+    `torch._dynamo.config.optimize_ddp`), so that each bucket's all-reduce can start while the rest of the
+    backward runs. With bf16 autocast (torch 2.11, 2 x H200) those cut graphs gave a non-finite heatmap
+    loss in about one step in ten, on one rank at a time, and not reproducibly: the same batch with the same
+    weights was finite again in half the reruns, and always finite through the uncut compiled graphs or
+    eagerly (benchmarks/ddp_nonfinite.py, experiments/ddp_2tasks.toml; docs/BENCHMARKS.md). Uncut graphs
+    skipped no step, at the same speed. `split_graphs=True` restores torch's default, to study it."""
+    torch._dynamo.config.optimize_ddp = split_graphs
+    return torch.nn.parallel.DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None)
+
+
+def setup_training(opts: TrainOptions, say=print, ddp_graph_split: bool = False) -> TrainingSetup:
+    """`ddp_graph_split`: compile under DDP as torch does by default (see `data_parallel`); only to study it."""
     rank, world = _distributed()
     say = say if rank == 0 else (lambda *_: None)
     device = pick_device(opts.device)
@@ -433,9 +449,7 @@ def setup_training(opts: TrainOptions, say=print) -> TrainingSetup:
             f"(~{3 * flops / 1e9:.0f} GFLOPs per training sample); optimizer {optimizer_name}, lr {lr:.2e}, "
             f"warmup {warmup}, batch {opts.batch_size} x {world} on {device}" + (", bf16" if opts.amp and device.type == "cuda" else ""))
 
-    model = policy
-    if world > 1:
-        model = torch.nn.parallel.DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None)
+    model = policy if world == 1 else data_parallel(policy, device, split_graphs=ddp_graph_split)
     amp = opts.amp and device.type == "cuda"
     train_step = TrainStep(policy, optimizer, state.schedule, amp, opts.clip, model)
     batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share,
