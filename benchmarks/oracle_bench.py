@@ -2,13 +2,16 @@
 executor) against the expert itself, on the same unseen seeds, with the executor's precision.
 
     python -m benchmarks.oracle_bench [--tasks a,b | --task-set rlbench18] [--seeds 25] [--first-seed 10000]
-                                      [--workers 2] [--out DIR] [--json out.json] [--quick]
+                                      [--workers 2] [--out DIR [--resume]] [--experts record_bench.json ...]
+                                      [--json out.json] [--quick]
 
 Per task: oracle success (Wilson interval), expert success on the same seeds, each seed in the same
 variation (the seeds spread evenly over a task's variations), success per variation, their agreement (the
 fraction of seeds with the same outcome), and the TCP's error at rest over every keyframe the
 executor reached (median, p95). The oracle part is exactly `rvt2 eval --oracle` (its report lands in
---out); the expert part is the code `rvt2 record` runs, without rendering.
+--out; `--resume` continues an interrupted one there, as `rvt2 eval --resume` does); the expert part is
+the code `rvt2 record` runs, without rendering (`--experts`: taken from `benchmarks/record_bench.py --json`
+files that ran the same seeds, instead of running it again).
 """
 
 import argparse
@@ -34,6 +37,9 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=10_000)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", help="the oracle's eval report folder (default: a temporary folder)")
+    parser.add_argument("--resume", action="store_true", help="continue the oracle evaluation in --out")
+    parser.add_argument("--experts", nargs="*", default=[],
+                        help="record_bench --json files whose expert runs on the same seeds stand for the expert part")
     parser.add_argument("--json", help="write results here")
     parser.add_argument("--quick", action="store_true", help="one seed of two tasks: checks that it runs")
     args = parser.parse_args()
@@ -42,13 +48,15 @@ def main() -> None:
         tasks, seeds = ["push_cube", "pick_cube"], 1
     out = args.out or tempfile.mkdtemp(prefix="oracle_bench_")
     result = evaluate(EvalOptions(checkpoint=None, tasks=tuple(tasks), episodes=seeds, seed=args.first_seed,
-                                  workers=args.workers, oracle=True, out=out))
+                                  workers=args.workers, oracle=True, out=out, resume=args.resume))
+    measured_experts = {(r["task"], r["first_seed"], r["seeds"]): r for path in args.experts
+                        for r in json.loads(open(path).read())["expert"]}
     by_seed = {(r["task"], r["seed"]): r["success"] for r in result.report["episodes"]}
     rows = []
     print("| task | oracle success (95% CI) | expert success | oracle / expert | agreement | error at rest mm (median / p95) "
           "| deg (median / p95) | keyframes |\n|---|---|---|---|---|---|---|---|")
     for name in tasks:
-        expert = expert_success(all_tasks()[name], seeds, args.first_seed)
+        expert = measured_experts.get((name, args.first_seed, seeds)) or expert_success(all_tasks()[name], seeds, args.first_seed)
         expert_ok = [s == "success" for s in expert["per_seed"]]
         oracle_ok = [by_seed[(name, args.first_seed + i)] for i in range(seeds)]
         summary = result.report["tasks"][name]["oracle"]

@@ -54,7 +54,7 @@ def measured(results: list[dict]) -> dict[str, list[str]]:
         machine = f"{m.get('cores', '?')}-core {m.get('cpu', 'unknown CPU')}, Python {m.get('python', '?')}"
         for row in result["tasks"]:
             seeds = f"seeds {row['first_seed']}-{row['first_seed'] + row['seeds'] - 1}"
-            line = f"expert {row['expert']:.0%}, oracle {row['oracle']:.0%} ({seeds}; {machine})"
+            line = f"expert {row['expert']:.0%}, oracle {row['oracle']:.0%} ({seeds}; {row.get('machine', machine)})"
             if len(row.get("expert_per_variation", {})) > 1:
                 line += "; per variation (expert / oracle): " + ", ".join(
                     f"{v}: {row['expert_per_variation'][v]:.0%} / {row['oracle_per_variation'].get(v, 0):.0%}"

@@ -47,3 +47,10 @@ rm -f .gpu/site.part.*
 tar -cf - -C "$work/site" . | xz -T2 -9 | split -b 56m - .gpu/site.part.
 (cd .gpu && sha256sum site.part.* > site.sha256)
 ls -la .gpu/site.part.*
+# The Vulkan and GL loaders as Debian packages: a GPU image may have NVIDIA's driver and no loader
+# (`rvt2 doctor`: "failed to find a rendering device"); `gpu_onebox.sh setup` unpacks .gl/*.deb.
+mkdir -p .gl /tmp/rvt2-apt-lists/partial
+apt_options=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/rvt2-apt-lists)
+apt-get "${apt_options[@]}" update -qq
+(cd .gl && apt-get "${apt_options[@]}" download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+ls -la .gl
