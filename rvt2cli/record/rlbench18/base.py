@@ -19,6 +19,18 @@ from mani_skill.utils.scene_builder.table import TableSceneBuilder
 PANDA_BASE = (-0.615, 0.0, 0.0)  # m: where the Panda stands, as in ManiSkill's tabletop tasks
 
 
+def build_fixture(scene, boxes, colour, name: str, at=(0.0, 0.0, 0.0)):
+    """A kinematic fixture (a safe, a cupboard, a rack) made of boxes of one colour: `boxes` are
+    (centre, half size) pairs in the fixture's frame, which starts at `at` until the episode places it."""
+    builder = scene.create_actor_builder()
+    material = sapien.render.RenderMaterial(base_color=list(colour))
+    for centre, half in boxes:
+        builder.add_box_collision(sapien.Pose(centre), half)
+        builder.add_box_visual(sapien.Pose(centre), half, material=material)
+    builder.initial_pose = sapien.Pose(list(at))
+    return builder.build_kinematic(name=name)
+
+
 class VariationEnv(BaseEnv):
     SUPPORTED_ROBOTS = ["panda"]
     agent: Panda

@@ -14,7 +14,7 @@ from transforms3d.euler import euler2quat
 
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.pose import Pose
-from rvt2cli.record.rlbench18.base import VariationEnv
+from rvt2cli.record.rlbench18.base import VariationEnv, build_fixture
 
 SHAPES = ("cube", "cylinder", "triangular prism", "star", "moon")
 SHAPE_COLOURS = ((0.85, 0.2, 0.2), (0.2, 0.45, 0.9), (0.2, 0.75, 0.3), (0.95, 0.8, 0.1), (0.6, 0.3, 0.8))
@@ -71,8 +71,6 @@ class PlaceShapeInShapeSorterEnv(VariationEnv):
             builder.initial_pose = sapien.Pose([-0.2, 0.1 * len(self.shapes), H])
             self.shapes.append(builder.build(name.replace(" ", "_")))
 
-        sorter = self.scene.create_actor_builder()
-        material = sapien.render.RenderMaterial(base_color=list(SORTER_COLOUR))
         hx, hy = SORTER_HALF
         wall_half_z = (SORTER_HEIGHT - PLATE) / 2
         boxes = [([0, 0, WALL / 2], [hx, hy, WALL / 2])]  # the floor
@@ -88,11 +86,7 @@ class PlaceShapeInShapeSorterEnv(VariationEnv):
         for x, (x0, x1) in zip(rows, row_bands):
             for y0, y1 in _gaps([(y - HOLE_HALF, y + HOLE_HALF) for hx_, y in HOLES if hx_ == x], -hy, hy):
                 boxes.append(([x, (y0 + y1) / 2, plate_z], [HOLE_HALF, (y1 - y0) / 2, PLATE / 2]))
-        for centre, half in boxes:
-            sorter.add_box_collision(sapien.Pose(centre), half)
-            sorter.add_box_visual(sapien.Pose(centre), half, material=material)
-        sorter.initial_pose = sapien.Pose([0.1, 0, 0])
-        self.sorter = sorter.build_kinematic("shape_sorter")
+        self.sorter = build_fixture(self.scene, boxes, SORTER_COLOUR, "shape_sorter", at=(0.1, 0, 0))
 
     def _place_task(self, env_idx, options: dict):
         rng = self._episode_rng

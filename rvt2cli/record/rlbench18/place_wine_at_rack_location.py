@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.pose import Pose
-from rvt2cli.record.rlbench18.base import VariationEnv
+from rvt2cli.record.rlbench18.base import VariationEnv, build_fixture
 
 LOCATIONS = ("middle", "left", "right")
 SLOT_Y = {"middle": 0.0, "left": 0.09, "right": -0.09}  # in the rack's frame
@@ -28,6 +28,7 @@ RACK_PLATE = (0.08, 0.14, 0.005)   # half sizes
 RAIL_HALF = (0.07, 0.005, 0.0125)  # rails along x
 RAIL_GAP = 0.032                   # m between a cradle's two rails (inner faces): the body rests on them
 RAIL_TOP = 2 * RACK_PLATE[2] + 2 * RAIL_HALF[2]
+WOOD_COLOUR = (0.55, 0.35, 0.2, 1.0)    # the rack
 LYING_Z = RAIL_TOP + BODY_HALF_WIDTH  # where a bottle's axis lies in a cradle
 
 
@@ -50,17 +51,11 @@ class PlaceWineAtRackLocationEnv(VariationEnv):
         bottle.initial_pose = sapien.Pose([-0.2, 0, BODY_HALF_WIDTH], NECK_ALONG_X)
         self.bottle = bottle.build("wine_bottle")  # its frame: the body's centre, z along the neck
 
-        wood = sapien.render.RenderMaterial(base_color=[0.55, 0.35, 0.2, 1.0])
-        rack = self.scene.create_actor_builder()
         boxes = [([0, 0, RACK_PLATE[2]], RACK_PLATE)]
         for y in SLOT_Y.values():
             for side in (-1, 1):
                 boxes.append(([0, y + side * (RAIL_GAP / 2 + RAIL_HALF[1]), 2 * RACK_PLATE[2] + RAIL_HALF[2]], RAIL_HALF))
-        for centre, half in boxes:
-            rack.add_box_collision(sapien.Pose(centre), half)
-            rack.add_box_visual(sapien.Pose(centre), half, material=wood)
-        rack.initial_pose = sapien.Pose([0.1, 0, 0])
-        self.rack = rack.build_kinematic("wine_rack")
+        self.rack = build_fixture(self.scene, boxes, WOOD_COLOUR, "wine_rack", at=(0.1, 0, 0))
 
     def _place_task(self, env_idx, options: dict):
         rng = self._episode_rng

@@ -16,7 +16,7 @@ import torch
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs import Pose
 
-from rvt2cli.record.rlbench18.base import PANDA_BASE, VariationEnv
+from rvt2cli.record.rlbench18.base import PANDA_BASE, VariationEnv, build_fixture
 
 
 @dataclass(frozen=True)
@@ -68,22 +68,13 @@ def _yaw(angle: float) -> list[float]:
 
 
 def _build_cupboard(scene):
-    builder = scene.create_actor_builder()
-    material = sapien.render.RenderMaterial(base_color=CUPBOARD_COLOUR)
     w, d = WIDTH / 2, DEPTH / 2
-
-    def box(centre, half):
-        builder.add_box_collision(pose=sapien.Pose(centre), half_size=half)
-        builder.add_box_visual(pose=sapien.Pose(centre), half_size=half, material=material)
-
     top = ROOF + WALL
-    box([d, 0, FLOOR / 2], [d, w, FLOOR / 2])                       # the base, its top the floor
-    box([DEPTH - WALL / 2, 0, top / 2], [WALL / 2, w, top / 2])     # the back
-    for side in (-1, 1):
-        box([d, side * (w - WALL / 2), top / 2], [d, WALL / 2, top / 2])
-    box([d, 0, ROOF + WALL / 2], [d, w, WALL / 2])                  # the roof
-    builder.initial_pose = sapien.Pose([0.3, 0, 0])
-    return builder.build_kinematic(name="cupboard")
+    boxes = [([d, 0, FLOOR / 2], [d, w, FLOOR / 2]),                      # the base, its top the floor
+             ([DEPTH - WALL / 2, 0, top / 2], [WALL / 2, w, top / 2])]    # the back
+    boxes += [([d, side * (w - WALL / 2), top / 2], [d, WALL / 2, top / 2]) for side in (-1, 1)]
+    boxes.append(([d, 0, ROOF + WALL / 2], [d, w, WALL / 2]))              # the roof
+    return build_fixture(scene, boxes, CUPBOARD_COLOUR, "cupboard", at=(0.3, 0, 0))
 
 
 def _build_grocery(scene, grocery: Grocery, x: float):

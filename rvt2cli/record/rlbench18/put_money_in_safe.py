@@ -14,7 +14,7 @@ from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs import Pose
 
 from rvt2cli.record.experts import _solver
-from rvt2cli.record.rlbench18.base import VariationEnv
+from rvt2cli.record.rlbench18.base import VariationEnv, build_fixture
 from rvt2cli.record.rlbench18.open_drawer import tilted_grasp
 
 SHELVES = ("bottom", "middle", "top")          # RLBench's order (its variation index)
@@ -56,22 +56,13 @@ def shelf_floor(shelf: int) -> float:
 
 
 def _build_safe(scene):
-    builder = scene.create_actor_builder()
-    material = sapien.render.RenderMaterial(base_color=SAFE_COLOUR)
     w, d = WIDTH / 2, DEPTH / 2
-
-    def box(centre, half):
-        builder.add_box_collision(pose=sapien.Pose(centre), half_size=half)
-        builder.add_box_visual(pose=sapien.Pose(centre), half_size=half, material=material)
-
-    box([d, 0, PLINTH / 2], [d, w, PLINTH / 2])
-    box([DEPTH - WALL / 2, 0, HEIGHT / 2], [WALL / 2, w, HEIGHT / 2])
-    for side in (-1, 1):
-        box([d, side * (w - WALL / 2), HEIGHT / 2], [d, WALL / 2, HEIGHT / 2])
-    for level in range(4):    # the floor, two shelves, the top
-        box([d, 0, PLINTH + WALL / 2 + level * (SLOT + WALL)], [d, w - WALL, WALL / 2])
-    builder.initial_pose = sapien.Pose([0.3, 0, 0])
-    return builder.build_kinematic(name="safe")
+    boxes = [([d, 0, PLINTH / 2], [d, w, PLINTH / 2]),
+             ([DEPTH - WALL / 2, 0, HEIGHT / 2], [WALL / 2, w, HEIGHT / 2])]
+    boxes += [([d, side * (w - WALL / 2), HEIGHT / 2], [d, WALL / 2, HEIGHT / 2]) for side in (-1, 1)]
+    boxes += [([d, 0, PLINTH + WALL / 2 + level * (SLOT + WALL)], [d, w - WALL, WALL / 2])
+              for level in range(4)]  # the floor, two shelves, the top
+    return build_fixture(scene, boxes, SAFE_COLOUR, "safe", at=(0.3, 0, 0))
 
 
 @register_env("RVT2-PutMoneyInSafe-v1", max_episode_steps=500)
