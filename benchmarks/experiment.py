@@ -127,10 +127,9 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     launch = rvt2 if settings.gpus == 1 else [*settings.torchrun, "--standalone", "--nproc-per-node", str(settings.gpus), "-m", "rvt2cli"]
     run = []
 
-    def demos(phase, folder, tasks, episodes, first_seed):
-        for task in tasks:
-            run.append((phase, rvt2 + ["record", "--task", task, "--episodes", str(episodes), "--seed", str(first_seed),
-                                       "--workers", workers, "--out", str(out / folder), "--no-progress"]))
+    def demos(phase, folder, tasks, episodes, first_seed):  # one command: its workers serve every task
+        run.append((phase, rvt2 + ["record", "--task", ",".join(tasks), "--episodes", str(episodes), "--seed", str(first_seed),
+                                   "--workers", workers, "--out", str(out / folder), "--no-progress"]))
         run.append((phase, rvt2 + ["extract-keyframes", str(out / folder)] + merge))
 
     for phase in phases:

@@ -1,7 +1,9 @@
 """Process-wide settings: the Vulkan driver the simulator renders with, the random generators an
 episode draws from, and worker processes that end with the process that started them."""
 
+import contextlib
 import ctypes
+import multiprocessing
 import os
 import random
 import signal
@@ -139,9 +141,51 @@ def end_with_parent() -> None:
     from the main thread, in `submit`.)"""
     if not sys.platform.startswith("linux"):
         return
-    import multiprocessing
-
     starter = multiprocessing.parent_process()
     ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
     if starter is not None and os.getppid() != starter.pid:  # it ended before the call above
         os.kill(os.getpid(), signal.SIGTERM)
+
+
+# Thread pools a simulator worker would otherwise size to the whole machine: OpenMP, the BLAS libraries
+# numpy and torch link, and Mesa's software rasteriser (lavapipe renders with LP_NUM_THREADS threads).
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_RENDER_THREADS = "LP_NUM_THREADS"
+
+
+def usable_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+@contextlib.contextmanager
+def simulator_pool(workers: int, initializer, initargs=()):
+    """A pool of `workers` simulator processes (record, eval) that share the machine instead of each
+    sizing its thread pools to all of it: numerical libraries run one thread per process, and lavapipe
+    renders with cores // workers. On a 32-core machine 30 workers otherwise start about 70 threads each,
+    and spend their time switching between them. The limits are read when a library starts, which in a
+    spawned process is before any initializer runs, so they travel in the environment the processes are
+    started with; variables you set yourself are kept."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    limits = {name: "1" for name in _THREAD_VARIABLES}
+    limits[_RENDER_THREADS] = str(max(1, usable_cores() // workers))
+    saved = {name: os.environ.get(name) for name in limits}
+    for name, value in limits.items():
+        os.environ.setdefault(name, value)
+    context = multiprocessing.get_context("spawn")  # SAPIEN does not survive fork
+    try:
+        with ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker,
+                                 initargs=(initializer, initargs)) as pool:
+            yield pool
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+
+
+def _start_worker(initializer, initargs) -> None:
+    end_with_parent()
+    import torch
+
+    torch.set_num_threads(1)  # the same arithmetic in every process, whatever the number of workers
+    initializer(*initargs)

@@ -10,7 +10,7 @@ import pytest
 from conftest import assert_one_line_error
 from rvt2cli.data import read_episode
 from rvt2cli.keyframes.extract import extract_file
-from rvt2cli.record.recorder import RecordOptions, record
+from rvt2cli.record.recorder import RecordOptions, record, record_tasks
 from rvt2cli.tasks import get_task
 
 pytestmark = pytest.mark.sim
@@ -53,12 +53,39 @@ def test_recorded_episode_contents(push_cube_dir):
     assert any("cube" in c for c in ep.robot.contacts)
 
 
-def test_same_seed_same_episode_with_any_number_of_workers(push_cube_dir, tmp_path):
-    summary = record("push_cube", 2, tmp_path, seed=0, workers=2, options=SMALL)
-    assert [r.seed for r in summary.successes] == [0, 1]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["push_cube_0000.mcap", "push_cube_0001.mcap"]
-    # byte-identical to the single-worker recording of seed 0
+def test_same_seed_same_episode_with_any_number_of_workers_and_tasks(push_cube_dir, tmp_path):
+    # one pool of 2 workers serves both tasks, so a worker switches scenes between them
+    summaries = record_tasks(["pull_cube", "push_cube"], 2, tmp_path, seed=0, workers=2, options=SMALL)
+    assert [s.task for s in summaries] == ["pull_cube", "push_cube"]
+    assert all([r.seed for r in s.successes] == [0, 1] for s in summaries)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pull_cube_0000.mcap", "pull_cube_0001.mcap",
+                                                          "push_cube_0000.mcap", "push_cube_0001.mcap"]
+    # byte-identical to the single-worker, single-task recording of seed 0
     assert (tmp_path / "push_cube_0000.mcap").read_bytes() == (push_cube_dir / "push_cube_0000.mcap").read_bytes()
+
+
+def _nothing():
+    pass
+
+
+def _thread_settings():
+    import threadpoolctl
+
+    blas = [pool["num_threads"] for pool in threadpoolctl.threadpool_info()]
+    return {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "LP_NUM_THREADS")}, blas
+
+
+def test_simulator_workers_share_the_machine():
+    pytest.importorskip("threadpoolctl")
+    from rvt2cli.runtime import simulator_pool, usable_cores
+
+    before = {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "LP_NUM_THREADS")}
+    with simulator_pool(2, _nothing) as pool:
+        variables, blas = pool.submit(_thread_settings).result()
+    assert variables["OMP_NUM_THREADS"] == (before["OMP_NUM_THREADS"] or "1")
+    assert variables["LP_NUM_THREADS"] == (before["LP_NUM_THREADS"] or str(max(1, usable_cores() // 2)))
+    assert blas and all(n == 1 for n in blas)   # numpy's BLAS (and torch's OpenMP) started one thread each
+    assert {name: os.environ.get(name) for name in before} == before   # the limits were the workers' only
 
 
 def test_extract_keyframes_on_recorded_insert_peg(tmp_path):

@@ -81,3 +81,31 @@ def test_expert_solves_its_variation_and_no_other(task_env):
     result = env.unwrapped.evaluate()
     assert not result["success"].item()
     assert result[flag].item()
+
+
+def test_grasped_is_pandas_is_grasping_from_one_contact_scan():
+    # VariationEnv.grasped replaces a per-object Panda.is_grasping in the success checks: at every step of an
+    # expert episode (grasp, carry, release) both give the same answer for each of the nine groceries
+    from rvt2cli.record.expert import run_expert
+    from rvt2cli.record.scene import make_env
+    from rvt2cli.tasks import get_task
+
+    task = get_task("put_groceries_in_cupboard")
+    env = make_env(task, cameras=("front",), image_size=32)
+    scene = env.unwrapped
+    answers = []
+    evaluate = scene.evaluate
+
+    def compared():
+        answers.append((scene.grasped(scene.groceries), torch.stack([scene.agent.is_grasping(g) for g in scene.groceries], dim=1)))
+        return evaluate()
+
+    scene.evaluate = compared
+    try:
+        seed, variation = CASES[task.name][:2]
+        assert run_expert(env, task.expert, seed, max_frames=task.max_steps, variation=variation).success
+    finally:
+        env.close()
+    assert len(answers) > 100 and all(ours.shape == (1, 9) and torch.equal(ours, theirs) for ours, theirs in answers)
+    held = torch.cat([theirs for _, theirs in answers])
+    assert held[:, variation].any() and not held[:, [g for g in range(9) if g != variation]].any()  # it held the named item

@@ -1,5 +1,7 @@
 """`rvt2 record`: scripted-expert demonstrations in ManiSkill/SAPIEN -> MCAP episodes."""
 
+import time
+
 from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names
 
 
@@ -10,8 +12,8 @@ def register(subparsers) -> None:
                     "episode: dense robot and simulator state every control step, RGB-D images of the camera rig at "
                     "the frames training uses. Seeds run upwards from --seed; the same command writes the same files.",
     )
-    p.add_argument("--task", help="task name (see --list-tasks)")
-    p.add_argument("--task-set", help="record every task of this named set in turn (e.g. rlbench18; see --list-tasks)")
+    p.add_argument("--task", type=names, help="task name, or several separated by commas (see --list-tasks)")
+    p.add_argument("--task-set", help="record every task of this named set (e.g. rlbench18; see --list-tasks)")
     p.add_argument("--list-tasks", action="store_true", help="print the known tasks (variations, sets) and exit")
     p.add_argument("--variation", type=NON_NEGATIVE, help="record only this variation (default: the episodes spread "
                                                             "evenly over the task's variations, seed by seed)")
@@ -48,7 +50,7 @@ def run(args) -> int:
         raise UserError("record needs --task NAME or --task-set SET, one of them (see `rvt2 record --list-tasks`)")
     if args.variation is not None and args.hold_out_variations:
         raise UserError("record takes --variation K or --hold-out-variations, not both")
-    tasks = [get_task(args.task)] if args.task else [get_task(n) for n in tasks_of_set(args.task_set)]
+    tasks = [get_task(n) for n in (args.task or tasks_of_set(args.task_set))]
     variations = "seen" if args.hold_out_variations else "all" if args.variation is None else str(args.variation)
     for task in tasks:
         task.variation_choices(variations)  # an unknown variation is one line, before any simulator starts
@@ -65,40 +67,55 @@ def run(args) -> int:
     options = RecordOptions(cameras=cameras, image_size=args.image_size, obs_every=args.obs_every,
                             voxel_size=args.voxel_size, store_clouds=args.store_clouds, keep_failures=args.keep_failures,
                             variations=variations)
-    short = [task.name for task in tasks if not _record_task(task, args, options)]
-    return 1 if short else 0
+    return 0 if _record(tasks, args, options) else 1
 
 
-def _record_task(task, args, options) -> bool:
-    """Record one task's episodes with a progress bar and a summary line; whether all succeeded."""
+def _record(tasks, args, options) -> bool:
+    """Record every task's episodes (one pool of workers for all) with a progress bar, then a summary
+    line per task; whether every task got its episodes."""
     from tqdm import tqdm
 
-    from rvt2cli.record.recorder import record
+    from rvt2cli.record.recorder import record_tasks
 
-    bar = tqdm(total=args.episodes, unit="ep", desc=f"record {task.name}", dynamic_ncols=True, disable=args.no_progress)
+    what = tasks[0].name if len(tasks) == 1 else f"{len(tasks)} tasks"
+    bar = tqdm(total=args.episodes * len(tasks), unit="ep", desc=f"record {what}", dynamic_ncols=True,
+               disable=args.no_progress)
+    attempts = []
 
     def on_result(result, summary):
+        attempts.append(result.success)
         if result.success:
             bar.update(1)
         if result.status == "error":
-            tqdm.write(f"seed {result.seed}: simulator error, episode skipped: {result.error}")
-        bar.set_postfix(attempts=len(summary.results), expert_success=f"{summary.expert_success_rate:.0%}")
+            tqdm.write(f"{summary.task} seed {result.seed}: simulator error, episode skipped: {result.error}")
+        bar.set_postfix(attempts=len(attempts), expert_success=f"{sum(attempts) / len(attempts):.0%}")
 
+    start = time.perf_counter()
     try:
-        summary = record(task.name, args.episodes, args.out, seed=args.seed, workers=args.workers, options=options,
-                         max_attempts=args.max_attempts, on_result=on_result)
+        summaries = record_tasks([task.name for task in tasks], args.episodes, args.out, seed=args.seed,
+                                 workers=args.workers, options=options, max_attempts=args.max_attempts,
+                                 on_result=on_result)
     finally:
         bar.close()
+    for task, summary in zip(tasks, summaries):
+        _summarise(task, summary, args)
+    if len(tasks) > 1:
+        kept = sum(len(s.successes) for s in summaries)
+        print(f"recorded {kept} episodes of {len(tasks)} tasks in {time.perf_counter() - start:.0f} s "
+              f"with {args.workers} worker{'s' if args.workers > 1 else ''}")
+    return all(summary.complete for summary in summaries)
+
+
+def _summarise(task, summary, args) -> None:
     kept = [r for r in summary.results if r.path]
     mb = sum(r.size_bytes for r in kept) / max(1, len(kept)) / 1e6
     counts = ", ".join(f"{n} {status}" for status, n in sorted(summary.counts().items()))
-    print(f"recorded {len(summary.successes)} successful {task.name} episodes into {args.out}/ in {summary.seconds:.0f} s "
-          f"({mb:.1f} MB each); expert success {summary.expert_success_rate:.0%} over {len(summary.results)} attempts ({counts})")
+    print(f"recorded {len(summary.successes)} successful {task.name} episodes into {args.out}/ ({mb:.1f} MB each, "
+          f"done after {summary.seconds:.0f} s); expert success {summary.expert_success_rate:.0%} over "
+          f"{len(summary.results)} attempts ({counts})")
     if task.num_variations > 1:
         spread = ", ".join(f"{v}: {n}" for v, n in summary.successes_per_variation().items())
         print(f"  episodes per variation: {spread}")
-    if len(summary.successes) < args.episodes:
+    if not summary.complete:
         print(f"rvt2: warning: only {len(summary.successes)} of {args.episodes} {task.name} episodes succeeded within "
               f"{len(summary.results)} attempts; raise --max-attempts to try more seeds")
-        return False
-    return True

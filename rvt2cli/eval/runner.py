@@ -5,11 +5,9 @@ Every finished episode goes into the journal at once (`rvt2cli.eval.journal`): a
 process costs the episodes it was running, not the finished ones, and `--resume` runs the rest.
 """
 
-import multiprocessing
-import os
 import time
 import warnings
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +21,7 @@ from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
 from rvt2cli.eval.search import InsertionSearch
-from rvt2cli.runtime import end_with_parent
+from rvt2cli.runtime import simulator_pool
 from rvt2cli.tasks import episode_variation, get_task
 
 
@@ -97,11 +95,6 @@ _worker: _Worker | None = None
 
 def _init(opts: EvalOptions, demos: dict) -> None:
     global _worker
-    end_with_parent()
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import torch
-
-    torch.set_num_threads(1)
     _worker = _Worker(opts, demos)
 
 
@@ -252,8 +245,7 @@ def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
         finally:
             torch.set_num_threads(threads)
         return
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(opts.workers, mp_context=context, initializer=_init, initargs=(opts, demos)) as pool:
+    with simulator_pool(opts.workers, _init, (opts, demos)) as pool:
         pending = {pool.submit(_run, job): job for job in jobs}
         while pending:
             completed, _ = wait(pending, return_when=FIRST_COMPLETED)

@@ -7,10 +7,8 @@ seed order, so the same command always writes the same files. A task with variat
 episodes over them: the seed picks the variation (`rvt2cli.tasks.episode_variation`).
 """
 
-import multiprocessing
-import os
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,7 +22,7 @@ from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.record.expert import ExpertRun, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
 from rvt2cli.robot import RobotFacts
-from rvt2cli.runtime import end_with_parent
+from rvt2cli.runtime import simulator_pool
 from rvt2cli.tasks import Task, episode_variation, get_task
 
 
@@ -115,27 +113,26 @@ def record_episode(env, task: Task, seed: int, out_dir: Path, options: RecordOpt
     return result
 
 
-# --- parallel recording: one simulator per worker process ------------------------------------------
+# --- parallel recording: one pool of simulator processes for every task ----------------------------
 
-_worker_env = None
+_worker_scene = {"task": None, "env": None}
 _worker_args = None
 
 
-def _init_worker(task_name: str, out_dir: str, options: RecordOptions) -> None:
-    global _worker_env, _worker_args
-    end_with_parent()
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import torch
-
-    torch.set_num_threads(1)
-    task = get_task(task_name)
-    _worker_env = make_env(task, options.cameras, options.image_size)
-    _worker_args = (task, Path(out_dir), options)
+def _init_worker(out_dir: str, options: RecordOptions) -> None:
+    global _worker_args
+    _worker_args = (Path(out_dir), options)
 
 
-def _work(seed: int) -> EpisodeResult:
-    task, out_dir, options = _worker_args
-    return record_episode(_worker_env, task, seed, out_dir, options)
+def _work(task_name: str, seed: int) -> EpisodeResult:
+    """Record one episode in this worker, building the task's scene first if its last one was another task's."""
+    out_dir, options = _worker_args
+    if _worker_scene["task"] != task_name:
+        if _worker_scene["env"] is not None:
+            _worker_scene["env"].close()
+        task = get_task(task_name)
+        _worker_scene.update(task=task_name, env=make_env(task, options.cameras, options.image_size))
+    return record_episode(_worker_scene["env"], get_task(task_name), seed, out_dir, options)
 
 
 @dataclass
@@ -143,7 +140,7 @@ class RecordSummary:
     task: str
     requested: int
     results: list[EpisodeResult] = field(default_factory=list)
-    seconds: float = 0.0
+    seconds: float = 0.0   # from the start of the recording until this task had its episodes (or gave up)
 
     @property
     def successes(self) -> list[EpisodeResult]:
@@ -152,6 +149,10 @@ class RecordSummary:
     @property
     def expert_success_rate(self) -> float:
         return len(self.successes) / max(1, len(self.results))
+
+    @property
+    def complete(self) -> bool:
+        return len(self.successes) >= self.requested
 
     def successes_per_variation(self) -> dict[int, int]:
         out: dict[int, int] = {}
@@ -168,63 +169,110 @@ class RecordSummary:
 
 def record(task_name: str, episodes: int, out_dir: str | Path, seed: int = 0, workers: int = 1,
            options: RecordOptions = RecordOptions(), max_attempts: int | None = None, on_result=None) -> RecordSummary:
-    """Record `episodes` successful episodes (seeds from `seed` upwards). `on_result(result, summary)`
-    is called for every attempt in seed order (the CLI's progress bar)."""
-    task = get_task(task_name)
-    task.variation_choices(options.variations)  # an unknown variation is the user's error, before any simulator starts
+    """Record `episodes` successful episodes of one task (seeds from `seed` upwards); see `record_tasks`."""
+    return record_tasks([task_name], episodes, out_dir, seed, workers, options, max_attempts, on_result)[0]
+
+
+def record_tasks(task_names, episodes: int, out_dir: str | Path, seed: int = 0, workers: int = 1,
+                 options: RecordOptions = RecordOptions(), max_attempts: int | None = None,
+                 on_result=None) -> list[RecordSummary]:
+    """Record `episodes` successful episodes of each task, seeds from `seed` upwards, giving up on a task
+    after `max_attempts` seeds. `on_result(result, summary)` is called for every attempt, in seed order
+    within a task (the CLI's progress bar). With several workers one pool serves all tasks: a worker
+    builds a task's scene when it is first given one of its seeds, so the processes start once and none
+    waits at the end of one task while another has seeds left."""
+    tasks = [get_task(name) for name in task_names]
+    for task in tasks:
+        task.variation_choices(options.variations)  # an unknown variation is the user's error, before any simulator starts
     out_dir = ensure_folder(out_dir)
     max_attempts = max_attempts or 10 * episodes + 10
-    summary = RecordSummary(task=task.name, requested=episodes)
+    summaries = [RecordSummary(task=task.name, requested=episodes) for task in tasks]
     start = time.perf_counter()
-
-    def accept(result: EpisodeResult) -> None:
-        summary.results.append(result)
-        if on_result:
-            on_result(result, summary)
-
     if workers <= 1:
-        env = make_env(task, options.cameras, options.image_size)
-        try:
-            for s in range(seed, seed + max_attempts):
-                accept(record_episode(env, task, s, out_dir, options))
-                if len(summary.successes) >= episodes:
-                    break
-        finally:
-            env.close()
+        for task, summary in zip(tasks, summaries):
+            env = make_env(task, options.cameras, options.image_size)
+            try:
+                for s in range(seed, seed + max_attempts):
+                    _accept(summary, record_episode(env, task, s, out_dir, options), on_result)
+                    if summary.complete:
+                        break
+            finally:
+                env.close()
+            summary.seconds = time.perf_counter() - start
     else:
-        _record_parallel(task, episodes, out_dir, seed, workers, options, max_attempts, summary, accept)
-    summary.seconds = time.perf_counter() - start
-    return summary
+        _record_parallel(tasks, summaries, out_dir, seed, workers, options, max_attempts, on_result, start)
+    return summaries
 
 
-def _record_parallel(task, episodes, out_dir, seed, workers, options, max_attempts, summary, accept) -> None:
-    context = multiprocessing.get_context("spawn")  # SAPIEN does not survive fork
-    finished: dict[int, EpisodeResult] = {}
-    next_seed, frontier, last_seed = seed, seed, seed + max_attempts
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                             initargs=(task.name, str(out_dir), options)) as pool:
+def _accept(summary: RecordSummary, result: EpisodeResult, on_result) -> None:
+    summary.results.append(result)
+    if on_result:
+        on_result(result, summary)
+
+
+@dataclass
+class _TaskSeeds:
+    """One task's seeds in a shared pool: handed out in order, their results accepted in order."""
+    summary: RecordSummary
+    next_seed: int
+    last_seed: int
+    frontier: int
+    finished: dict = field(default_factory=dict)   # seed -> result, done but not yet accepted
+    running: int = 0
+
+    def can_start(self) -> bool:
+        return not self.summary.complete and self.next_seed < self.last_seed
+
+    def needs(self) -> bool:
+        """Whether more seeds are needed even if every one running succeeds."""
+        waiting = sum(r.success for r in self.finished.values())
+        return self.can_start() and len(self.summary.successes) + waiting + self.running < self.summary.requested
+
+
+def _record_parallel(tasks, summaries, out_dir, seed, workers, options, max_attempts, on_result, start) -> None:
+    queues = {task.name: _TaskSeeds(summary, seed, seed + max_attempts, seed) for task, summary in zip(tasks, summaries)}
+    leftovers: list[EpisodeResult] = []
+
+    def next_job():
+        # Seeds a task needs come first, in task order; then, rather than idle, seeds a task may need
+        # (a worker runs ahead; its episode is dropped below if the task completes without it).
+        for wanted in (_TaskSeeds.needs, _TaskSeeds.can_start):
+            for name, queue in queues.items():
+                if wanted(queue):
+                    queue.next_seed += 1
+                    queue.running += 1
+                    return name, queue.next_seed - 1
+        return None
+
+    with simulator_pool(workers, _init_worker, (str(out_dir), options)) as pool:
         pending = {}
-        done = False
-        while not done:
-            while len(pending) < workers and next_seed < last_seed:
-                pending[pool.submit(_work, next_seed)] = next_seed
-                next_seed += 1
+        while True:
+            while len(pending) < workers and (job := next_job()) is not None:
+                pending[pool.submit(_work, *job)] = job
             if not pending:
                 break
             completed, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in completed:
-                finished[pending.pop(future)] = future.result()
-            while frontier in finished and not done:
-                accept(finished.pop(frontier))
-                frontier += 1
-                done = len(summary.successes) >= episodes
-        for future in pending:
-            future.cancel()
-        # Episodes past the last one needed were recorded only because workers ran ahead: drop them,
-        # so that the files do not depend on the number of workers.
-        for future in pending:
-            if not future.cancelled():
-                finished[pending[future]] = future.result()
-    for result in finished.values():
+                name, done_seed = pending.pop(future)
+                queue = queues[name]
+                queue.running -= 1
+                result = future.result()
+                if queue.summary.complete:
+                    leftovers.append(result)
+                    continue
+                queue.finished[done_seed] = result
+                while queue.frontier in queue.finished and not queue.summary.complete:
+                    _accept(queue.summary, queue.finished.pop(queue.frontier), on_result)
+                    queue.frontier += 1
+                if queue.summary.complete:
+                    queue.summary.seconds = time.perf_counter() - start
+                    leftovers += queue.finished.values()
+                    queue.finished.clear()
+    # Episodes past the last one a task needed were recorded only because workers ran ahead: drop them,
+    # so that the files do not depend on the number of workers.
+    for result in leftovers:
         if result.path:
             Path(result.path).unlink(missing_ok=True)
+    for queue in queues.values():
+        if not queue.summary.complete:
+            queue.summary.seconds = time.perf_counter() - start

@@ -4,6 +4,7 @@ The environment steps with `obs_mode="none"` (no rendering while the expert runs
 rendered only on request with `capture_cameras`, typically after `env.set_state_dict(...)`.
 """
 
+import gc
 import logging
 import re
 
@@ -21,6 +22,19 @@ MIN_HELD_WIDTH = 0.005  # m: fingers closer than this hold nothing (a closed gri
 NEAR_M = 0.005  # m: a body this close to the robot is "near" it (the motion planner's collision radius)
 
 
+def _freeze_imported_objects() -> None:
+    """Leave what exists now (the imported modules: torch, SAPIEN, ManiSkill) out of Python's garbage
+    collections from now on. ManiSkill runs a full collection each time it rebuilds a scene, which rvt2
+    does at every reset; scanning the modules' objects made that 0.13 s an episode."""
+    global _frozen
+    if not _frozen:
+        gc.freeze()
+        _frozen = True
+
+
+_frozen = False
+
+
 def make_env(task: Task, cameras=None, image_size: int | None = None):
     """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras."""
     driver = use_vulkan_driver()
@@ -29,6 +43,7 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
     import rvt2cli.record.rlbench18  # noqa: F401 - registers rvt2-18's environments
     from mani_skill.utils.logging_utils import logger as mani_skill_logger
 
+    _freeze_imported_objects()
     mani_skill_logger.setLevel(logging.ERROR)  # e.g. "no CUDA, rendering on the CPU": expected here
     # mplib's path timing (TOPP-RA) warns ("Fail to parametrize path", "A numerical error occurs") about every
     # path it cannot time, once per handler it has added (one per plan): the experts and the executor treat
@@ -118,10 +133,19 @@ def _body_name(entity_name: str) -> str:
     return re.sub(r"_\d+$", "", re.sub(r"^scene-\d+_", "", entity_name))
 
 
-def _contact_pairs(contacts) -> list[tuple[str, str]]:
-    """The (entity, entity) pairs of these PhysX contacts that carry force."""
-    return [(c.bodies[0].entity.name, c.bodies[1].entity.name) for c in contacts
-            if sum(float(np.linalg.norm(p.impulse)) for p in c.points) > CONTACT_IMPULSE]
+def _contact_table(contacts) -> list[tuple[str, str, list]]:
+    """(entity name, entity name, contact points) of each PhysX contact, each read once: every read of a
+    contact's bodies or points builds new Python objects, and a scene has a few hundred contacts a step."""
+    return [(*(body.entity.name for body in contact.bodies), contact.points) for contact in contacts]
+
+
+def _contact_pairs(table) -> list[tuple[str, str]]:
+    """The (entity, entity) pairs of these contacts (`_contact_table`) that carry force."""
+    norms = np.linalg.norm(np.array([p.impulse for *_, points in table for p in points], dtype=np.float64).reshape(-1, 3), axis=1)
+    bounds = np.concatenate([[0], np.cumsum([len(points) for *_, points in table], dtype=np.int64)])
+    running = np.concatenate([[0.0], np.cumsum(norms)])
+    carried = running[bounds[1:]] - running[bounds[:-1]]   # each contact's summed impulse, in one pass
+    return [(a, b) for (a, b, _), total in zip(table, carried) if total > CONTACT_IMPULSE]
 
 
 def _held(env, pairs) -> set[str]:
@@ -138,7 +162,7 @@ def _held(env, pairs) -> set[str]:
 
 def held_objects(env) -> set[str]:
     """Names (as robot_contacts gives them) of the objects in the gripper."""
-    return {_body_name(n) for n in _held(env, _contact_pairs(env.unwrapped.scene.get_contacts()))}
+    return {_body_name(n) for n in _held(env, _contact_pairs(_contact_table(env.unwrapped.scene.get_contacts())))}
 
 
 def robot_contacts(env, margin: float = NEAR_M) -> tuple[list[str], list[str]]:
@@ -146,14 +170,13 @@ def robot_contacts(env, margin: float = NEAR_M) -> tuple[list[str], list[str]]:
     fingers), and those within `margin` of either, touching ones included. PhysX reports contact points,
     with their separation, for shapes closer than its contact offset (2 cm in ManiSkill scenes), so one
     contact query finds both, whether or not a body touches."""
-    contacts = env.unwrapped.scene.get_contacts()
-    pairs = _contact_pairs(contacts)
+    table = _contact_table(env.unwrapped.scene.get_contacts())
+    pairs = _contact_pairs(table)
     grip = {link.name for link in env.unwrapped.agent.robot.get_links()} | _held(env, pairs)
     touched = {b for a, b in pairs if a in grip and b not in grip} | {a for a, b in pairs if b in grip and a not in grip}
     near = set()
-    for contact in contacts:
-        a, b = contact.bodies[0].entity.name, contact.bodies[1].entity.name
-        if (a in grip) != (b in grip) and contact.points and min(p.separation for p in contact.points) <= margin:
+    for a, b, points in table:
+        if (a in grip) != (b in grip) and points and min(p.separation for p in points) <= margin:
             near.add(b if a in grip else a)
     return sorted({_body_name(n) for n in touched}), sorted({_body_name(n) for n in near})
 

@@ -18,12 +18,12 @@
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
 # building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, ddpbench,
-# eval, oracle, replay, repro, offline.
+# eval, oracle, replay, repro, offline, recordbench.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
-# searched first, e.g. a sitecustomize.py); for the building blocks RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA,
-# OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results).
+# searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
+# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root: every path below is relative to it
 KIT=scripts/offline-gpu-host
@@ -104,9 +104,8 @@ while [ $# -gt 0 ]; do
     ;;
   record)
     t=$(clock)
-    for task in $TASKS; do
-      "${RVT2[@]}" record --task "$task" --episodes "$EPISODES" --workers "$WORKERS" --out "$W/demos" --no-progress 2>&1 | tail -2
-    done
+    "${RVT2[@]}" record --task "$(echo $TASKS | tr ' ' ,)" --episodes "$EPISODES" --workers "$WORKERS" --out "$W/demos" \
+      --no-progress 2>&1 | tail -20
     phase record $(( $(clock) - t ))
     ;&
   keyframes)
@@ -149,11 +148,16 @@ while [ $# -gt 0 ]; do
       --workers "$WORKERS" --out "$W/eval_replay" --no-progress 2>&1 | tail -5
     phase replay $(( $(clock) - t ))
     ;;
+  recordbench)  # recording's cost: EPISODES successful demos of every task of TASK_SET, WORKERS workers
+    t=$(clock)
+    python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --seeds 0 --episodes "$EPISODES" \
+      --workers "$WORKERS" --json "$W/record_bench_${TASK_SET:-rlbench18}.json" 2>&1 | tail -3
+    phase recordbench $(( $(clock) - t ))
+    ;;
   heldout)  # held-out demos for offline scores: HELDOUT_TASKS x 5 from seed 30000 (training demos use 0 upwards)
     t=$(clock)
-    for task in ${HELDOUT_TASKS:-$TASKS}; do
-      "${RVT2[@]}" record --task "$task" --episodes "${HELDOUT_EPISODES:-5}" --seed 30000 --workers "$WORKERS" --out "$W/heldout" --no-progress 2>&1 | tail -1
-    done
+    "${RVT2[@]}" record --task "$(echo ${HELDOUT_TASKS:-$TASKS} | tr ' ' ,)" --episodes "${HELDOUT_EPISODES:-5}" --seed 30000 \
+      --workers "$WORKERS" --out "$W/heldout" --no-progress 2>&1 | tail -1
     "${RVT2[@]}" extract-keyframes "$W/heldout" | tail -1
     phase heldout $(( $(clock) - t ))
     ;;
@@ -232,7 +236,7 @@ while [ $# -gt 0 ]; do
     ;;
   results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
-    files=(phases.tsv ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+    files=(phases.tsv record_bench_*.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
       e=$(basename "$EXPERIMENT" .toml)
@@ -265,7 +269,7 @@ while [ $# -gt 0 ]; do
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench" >&2
     exit 2
     ;;
   esac

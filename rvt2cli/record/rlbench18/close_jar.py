@@ -90,7 +90,7 @@ class CloseJarEnv(VariationEnv):
         return (torch.linalg.norm(offset[:, :2], dim=1) <= SEATED_XY) & ((offset[:, 2] - CLOSED_Z).abs() <= SEATED_Z)
 
     def evaluate(self):
-        held = self.agent.is_grasping(self.lid)
+        held = self.grasped([self.lid])[:, 0]
         named = [self._closes(j) & (c == self.variation) for j, c in zip(self.jars, self.jar_colors)]
         other = [self._closes(j) & (c != self.variation) for j, c in zip(self.jars, self.jar_colors)]
         return {"success": torch.stack(named).any(dim=0) & ~held, "wrong_target": torch.stack(other).any(dim=0) & ~held}

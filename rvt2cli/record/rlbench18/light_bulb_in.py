@@ -111,9 +111,10 @@ class LightBulbInEnv(VariationEnv):
 
     def evaluate(self):
         named = self.named_holders()
-        released = not any(bool(self.agent.is_grasping(b)[0]) for b in self.bulbs)
+        held = self.grasped(self.bulbs)[0]
+        released = not held.any()
         success = any(self._in_lamp(self.bulbs[i]) for i in named) and released
-        wrong = any(self._in_lamp(b) or bool(self.agent.is_grasping(b)[0])
+        wrong = any(self._in_lamp(b) or bool(held[i])
                     for i, b in enumerate(self.bulbs) if i not in named)
         return {"success": torch.tensor([success]), "wrong_object": torch.tensor([wrong])}
 

@@ -98,7 +98,7 @@ class MeatOffGrillEnv(VariationEnv):
 
     def evaluate(self):
         beside = self.beside_grill()
-        held = torch.stack([self.agent.is_grasping(meat) for meat in self.meats], dim=1)
+        held = self.grasped(self.meats)
         named = beside[:, self.variation] & ~held.any(dim=1)
         other = torch.ones_like(beside)
         other[:, self.variation] = False

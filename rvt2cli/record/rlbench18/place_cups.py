@@ -82,7 +82,7 @@ class PlaceCupsEnv(VariationEnv):
 
     def evaluate(self):
         placed = torch.stack([self._over_a_peg(cup) for cup in self.cups]).sum(dim=0)
-        held = torch.stack([self.agent.is_grasping(cup) for cup in self.cups]).any(dim=0)
+        held = self.grasped(self.cups).any(dim=1)
         return {"success": (placed == self.count) & ~held, "placed": placed}
 
 

@@ -110,7 +110,8 @@ class PlaceShapeInShapeSorterEnv(VariationEnv):
                     and local[2] < SORTER_HEIGHT - PLATE)
 
     def evaluate(self):
-        wrong = any(self._inside(s) or bool(self.agent.is_grasping(s)[0])
+        held = self.grasped(self.shapes)[0]
+        wrong = any(self._inside(s) or bool(held[i])
                     for i, s in enumerate(self.shapes) if i != self.variation)
         return {"success": torch.tensor([self._inside(self.shapes[self.variation])]),
                 "wrong_object": torch.tensor([wrong])}

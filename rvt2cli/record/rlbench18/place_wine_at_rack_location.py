@@ -81,7 +81,7 @@ class PlaceWineAtRackLocationEnv(VariationEnv):
 
     def evaluate(self):
         named = LOCATIONS[self.variation]
-        released = not bool(self.agent.is_grasping(self.bottle)[0])
+        released = not bool(self.grasped([self.bottle])[0, 0])
         return {"success": torch.tensor([self._lies_in(named) and released]),
                 "wrong_target": torch.tensor([any(self._lies_in(o) for o in LOCATIONS if o != named)])}
 

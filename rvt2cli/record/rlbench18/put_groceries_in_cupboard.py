@@ -131,7 +131,7 @@ class PutGroceriesInCupboardEnv(VariationEnv):
 
     def evaluate(self):
         inside = self.inside()
-        held = torch.stack([self.agent.is_grasping(actor) for actor in self.groceries], dim=1)
+        held = self.grasped(self.groceries)
         named = torch.arange(len(GROCERIES), device=inside.device) == self.variation
         return {"success": inside[:, self.variation] & ~held.any(dim=1),
                 "wrong_object": ((inside | held) & ~named).any(dim=1)}

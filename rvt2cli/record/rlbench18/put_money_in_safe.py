@@ -95,7 +95,7 @@ class PutMoneyInSafeEnv(VariationEnv):
 
     def evaluate(self):
         on_shelf = self.money_on_shelf()
-        named = on_shelf[:, self.variation] & ~self.agent.is_grasping(self.money)
+        named = on_shelf[:, self.variation] & ~self.grasped([self.money])[:, 0]
         return {"success": named, "wrong_target": on_shelf.any(dim=1) & ~on_shelf[:, self.variation]}
 
 

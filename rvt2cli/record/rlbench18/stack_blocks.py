@@ -76,7 +76,7 @@ class StackBlocksEnv(VariationEnv):
         named = torch.tensor([c == self.target_color for c in self.block_colors])[:, None]
         # no stillness test: PhysX leaves a resting tower's blocks a few cm/s of velocity it never damps
         stacked = (on_square & named).sum(dim=0)
-        grasped = torch.stack([self.agent.is_grasping(b) for b in self.blocks])
+        grasped = self.grasped(self.blocks).T  # [blocks, envs]
         wrong = ((on_square | grasped) & ~named).any(dim=0)
         return {"success": (stacked == self.height) & ~grasped.any(dim=0), "stacked": stacked, "wrong_object": wrong}
 

@@ -89,7 +89,7 @@ class StackCupsEnv(VariationEnv):
         bases = torch.stack([torch.stack([self._inside(cup, base) for cup in self.cups if cup is not base]).all(dim=0)
                              for base in self.cups])  # [cups, envs]
         named = torch.tensor([c == self.variation for c in self.cup_colors])[:, None]
-        held = torch.stack([self.agent.is_grasping(cup) for cup in self.cups]).any(dim=0)
+        held = self.grasped(self.cups).any(dim=1)
         return {"success": (bases & named).any(dim=0) & ~held, "wrong_target": (bases & ~named).any(dim=0) & ~held}
 
 
