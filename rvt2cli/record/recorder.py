@@ -127,12 +127,13 @@ def _init_worker(out_dir: str, options: RecordOptions) -> None:
 def _work(task_name: str, seed: int) -> EpisodeResult:
     """Record one episode in this worker, building the task's scene first if its last one was another task's."""
     out_dir, options = _worker_args
-    if _worker_scene["task"] != task_name:
+    task = _worker_scene["task"]
+    if task is None or task.name != task_name:
         if _worker_scene["env"] is not None:
             _worker_scene["env"].close()
         task = get_task(task_name)
-        _worker_scene.update(task=task_name, env=make_env(task, options.cameras, options.image_size))
-    return record_episode(_worker_scene["env"], get_task(task_name), seed, out_dir, options)
+        _worker_scene.update(task=task, env=make_env(task, options.cameras, options.image_size))
+    return record_episode(_worker_scene["env"], task, seed, out_dir, options)
 
 
 @dataclass

@@ -149,11 +149,7 @@ def _contact_table(contacts) -> list[tuple[str, str, list]]:
 
 def _contact_pairs(table) -> list[tuple[str, str]]:
     """The (entity, entity) pairs of these contacts (`_contact_table`) that carry force."""
-    norms = np.linalg.norm(np.array([p.impulse for *_, points in table for p in points], dtype=np.float64).reshape(-1, 3), axis=1)
-    bounds = np.concatenate([[0], np.cumsum([len(points) for *_, points in table], dtype=np.int64)])
-    running = np.concatenate([[0.0], np.cumsum(norms)])
-    carried = running[bounds[1:]] - running[bounds[:-1]]   # each contact's summed impulse, in one pass
-    return [(a, b) for (a, b, _), total in zip(table, carried) if total > CONTACT_IMPULSE]
+    return [(a, b) for a, b, points in table if sum(float(np.linalg.norm(p.impulse)) for p in points) > CONTACT_IMPULSE]
 
 
 def _held(env, pairs) -> set[str]:
