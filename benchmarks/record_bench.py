@@ -40,10 +40,18 @@ def expert_success(task, seeds: int, first_seed: int = 0) -> dict:
 
 
 def record_throughput(episodes: int, workers: int, tasks=("insert_peg",)) -> dict:
-    """`rvt2 record`'s own function over all the tasks at once, as `rvt2 record --task-set` runs it."""
+    """`rvt2 record`'s own function over all the tasks at once, as `rvt2 record --task-set` runs it.
+    A line as each task completes, so that a run stopped early still tells how far it came."""
+    start = time.perf_counter()
+
+    def on_result(result, summary):
+        if result.success and len(summary.successes) == summary.requested:
+            print(f"{time.perf_counter() - start:.0f} s: {summary.task} done ({episodes} demos, "
+                  f"{len(summary.results)} attempts)", flush=True)
+
     with tempfile.TemporaryDirectory() as out:
-        start = time.perf_counter()
-        summaries = record_tasks(list(tasks), episodes, out, seed=0, workers=workers, options=RecordOptions())
+        summaries = record_tasks(list(tasks), episodes, out, seed=0, workers=workers, options=RecordOptions(),
+                                 on_result=on_result)
         seconds = time.perf_counter() - start
     sizes = [r.size_bytes for s in summaries for r in s.successes]
     return {"tasks": list(tasks), "episodes": len(sizes), "attempts": sum(len(s.results) for s in summaries),
