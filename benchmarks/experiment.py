@@ -8,7 +8,9 @@ timed into OUT/phases.tsv. The phases, in order:
     record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`)
     heldout   demos on seeds training never sees, scored offline
     train     one run per training seed (torchrun when --gpus > 1, the global batch kept)
-    eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted)
+    eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted):
+              with `ranges = N`, N disjoint ranges of seeds, one report each (evals/seed0_from10000, ...);
+              each `[eval.extra.NAME]` table is one more evaluation with its own options (evals/seed0_NAME)
     offline   each run's precision in millimetres on the held-out demos
     oracle    the expert's own keyframes through the same executor, on the evaluation seeds
 
@@ -41,7 +43,8 @@ SCHEMA = {
     "record": {"demos_per_task", "first_seed", "merge_refinements_mm"},
     "heldout": {"tasks", "demos_per_task", "first_seed"},
     "train": {"config", "seeds", "steps", "batch_size", "options"},
-    "eval": {"episodes_per_task", "first_seed", "options"},
+    "eval": {"episodes_per_task", "first_seed", "options", "ranges", "extra"},
+    "eval.extra.*": {"episodes_per_task", "first_seed", "options"},
     "oracle": {"episodes_per_task", "first_seed"},
     "published": {"results", "raw", "machine", "notes"},
 }
@@ -81,12 +84,22 @@ def load(path: Path) -> dict:
         experiment = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e}); fix the file") from None
-    for table, allowed in SCHEMA.items():
-        section = experiment if table == "" else experiment.get(table, {})
+    sections = {table: experiment if table == "" else experiment.get(table, {}) for table in SCHEMA if "*" not in table}
+    sections |= {f"eval.extra.{name}": extra for name, extra in experiment.get("eval", {}).get("extra", {}).items()}
+    for table, section in sections.items():
+        allowed = SCHEMA.get(table) or SCHEMA["eval.extra.*"]
         unknown = sorted(set(section) - allowed)
         if unknown:
             where = f"[{table}]" if table else "the top level"
             raise UserError(f"{path}: unknown key {unknown[0]!r} in {where}; known: {', '.join(sorted(allowed))}")
+    for name, extra in experiment.get("eval", {}).get("extra", {}).items():
+        if "episodes_per_task" not in extra:
+            raise UserError(f"{path}: [eval.extra.{name}] has no 'episodes_per_task'; add it")
+    ranges = experiment.get("eval", {}).get("ranges", 1)
+    episodes = experiment.get("eval", {}).get("episodes_per_task", 0)
+    if not isinstance(ranges, int) or ranges < 1 or episodes % ranges:
+        raise UserError(f"{path}: [eval] ranges = {ranges} does not divide episodes_per_task = {episodes} "
+                        "into whole ranges; give a number of ranges that divides it")
     for required in ("name", "tasks", "record", "train", "eval"):
         if required not in experiment:
             raise UserError(f"{path}: no {required!r}; every experiment file gives name, tasks, [record], [train] and [eval]")
@@ -112,6 +125,22 @@ def options(table: dict) -> list[str]:
         elif value is not False:
             argv += [f"--{key}", str(value)]
     return argv
+
+
+def evaluations(evaluate: dict) -> list[tuple[str, int, int, dict]]:
+    """(folder suffix, episodes per task, first seed, options) of each evaluation of a trained run: the
+    evaluation seeds, split into `ranges` disjoint ranges reported apart, then each [eval.extra.NAME]."""
+    episodes, first_seed, ranges = evaluate["episodes_per_task"], evaluate.get("first_seed", 10000), evaluate.get("ranges", 1)
+    if ranges == 1:
+        runs = [("", episodes, first_seed, evaluate.get("options", {}))]
+    else:
+        size = episodes // ranges
+        runs = [(f"_from{first_seed + k * size}", size, first_seed + k * size, evaluate.get("options", {}))
+                for k in range(ranges)]
+    for name, extra in evaluate.get("extra", {}).items():
+        runs.append((f"_{name}", extra["episodes_per_task"], extra.get("first_seed", first_seed),
+                     {**evaluate.get("options", {}), **extra.get("options", {})}))
+    return runs
 
 
 def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[str, list[str]]]:
@@ -146,13 +175,13 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
             for seed in seeds:
-                folder = out / "evals" / f"seed{seed}"
-                resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
-                run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
-                                           "--episodes", str(evaluate["episodes_per_task"]),
-                                           "--seed", str(evaluate.get("first_seed", 10000)), "--workers", workers,
-                                           "--device", settings.device, "--out", str(folder)]
-                            + options(evaluate.get("options", {})) + resume + ["--no-progress"]))
+                for name, episodes, first_seed, extra_options in evaluations(evaluate):
+                    folder = out / "evals" / f"seed{seed}{name}"
+                    resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
+                    run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
+                                               "--episodes", str(episodes), "--seed", str(first_seed), "--workers", workers,
+                                               "--device", settings.device, "--out", str(folder)]
+                                + options(extra_options) + resume + ["--no-progress"]))
         elif phase == "offline" and heldout:
             for seed in seeds:
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),

@@ -10,12 +10,15 @@ EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluatio
 over all of them) and the spread between the models' rates beside it. oracle.json is
 `python -m benchmarks.oracle_bench --json ...` (oracle and expert on the same seeds); the older pair
 --oracle/--expert takes an `rvt2 eval --oracle` folder and `benchmarks.record_bench --json` output.
---previous adds a policy column of an earlier results.json (its first, or the one named after #) for comparison. The last column
+--previous adds a policy column of an earlier results.json (its first, or the one named after #) for comparison. --paper
+FILE#MODEL adds a published column (`benchmarks/paper_rlbench18.toml#rvt2`: the RVT-2 paper's mean and standard deviation
+over its four evaluations) and, for the first --paper, the first policy's difference from it in points. The last column
 compares the first --policy with the oracle.
 """
 
 import argparse
 import json
+import tomllib
 from pathlib import Path
 
 from rvt2cli.eval.report import build_report, wilson_interval
@@ -58,10 +61,23 @@ def _pooled(reports: list[dict], task: str) -> dict:
     return entry
 
 
-def collect(policies: dict[str, list[dict]], oracle: dict[str, dict], expert: dict[str, dict], previous: dict) -> dict:
+def load_paper(arg: str) -> tuple[str, dict]:
+    """FILE#MODEL: one model's published success per task, {task: {"mean": %, "std": %}} (see paper_rlbench18.toml)."""
+    path, _, model = arg.partition("#")
+    figures = tomllib.loads(Path(path).read_text())
+    if model not in figures:
+        known = ", ".join(k for k, v in figures.items() if isinstance(v, dict))
+        raise SystemExit(f"results_table: error: {path} has no model {model!r}; give FILE#MODEL with one of: {known}")
+    return f"paper: {model}", {task: {"mean": v[0], "std": v[1]} for task, v in figures[model].items() if task != "average"}
+
+
+def collect(policies: dict[str, list[dict]], oracle: dict[str, dict], expert: dict[str, dict], previous: dict,
+            papers: dict | None = None) -> dict:
+    papers = papers or {}
     rows = []
     for task in sorted(oracle):
-        entry = {"task": task, "policies": {}, "oracle": oracle[task], "expert": expert[task]}
+        entry = {"task": task, "policies": {}, "oracle": oracle[task], "expert": expert[task],
+                 "papers": {label: figures.get(task) for label, figures in papers.items()}}
         for label, reports in policies.items():
             entry["policies"][label] = _pooled(reports, task)
         for label, rows_before in previous.items():
@@ -71,9 +87,12 @@ def collect(policies: dict[str, list[dict]], oracle: dict[str, dict], expert: di
     average = {label: sum(r["policies"][label]["rate"] for r in rows) / len(rows) for label in labels}
     average["oracle"] = sum(r["oracle"]["rate"] for r in rows) / len(rows)
     average["expert"] = sum(r["expert"]["rate"] for r in rows) / len(rows)
+    for label in papers:
+        given = [r["papers"][label]["mean"] for r in rows if r["papers"][label]]
+        average[label] = sum(given) / len(given) / 100 if given else None
     first = next(iter(policies.values()))[0]
     return {"seeds": f"{first['seed']}-{first['seed'] + first['episodes_per_task'] - 1}", "labels": labels,
-            "rows": rows, "average": average}
+            "papers": list(papers), "rows": rows, "average": average}
 
 
 def from_oracle_bench(path: str) -> tuple[dict, dict]:
@@ -108,17 +127,26 @@ def markdown(results: dict) -> str:
         spread = f"; models {'/'.join(f'{m:.0%}' for m in r['models'])}" if "models" in r else ""
         return f"{r['rate']:.0%} ({r['successes']}/{r['episodes']}; {lo:.0%}-{hi:.0%}{spread})"
 
-    labels = results["labels"]
-    lines = ["| task | " + " | ".join(labels) + " | oracle (same executor) | scripted expert | "
-             f"{labels[0]} / oracle |", "|---" * (len(labels) + 4) + "|"]
+    def published(figure):
+        return f"{figure['mean']:g} ± {figure['std']:g}" if figure else "-"
+
+    def points(rate, figure):  # the policy's rate against a published mean, in points
+        return f"{100 * rate - figure['mean']:+.0f}" if figure else "-"
+
+    labels, papers = results["labels"], results.get("papers", [])
+    against = [f"{labels[0]} - {papers[0]} (points)"] if papers else []
+    header = [*labels, *papers, *against, "oracle (same executor)", "scripted expert", f"{labels[0]} / oracle"]
+    lines = ["| task | " + " | ".join(header) + " |", "|---" * (len(header) + 1) + "|"]
     for r in results["rows"]:
         first = r["policies"][labels[0]]["rate"]
         ratio = f"{first / r['oracle']['rate']:.2f}" if r["oracle"]["rate"] else "-"
-        lines.append(f"| {r['task']} | " + " | ".join(cell(r["policies"][label]) for label in labels)
-                     + f" | {cell(r['oracle'])} | {cell(r['expert'])} | {ratio} |")
+        cells = [cell(r["policies"][label]) for label in labels] + [published(r["papers"][p]) for p in papers]
+        cells += [points(first, r["papers"][papers[0]])] if papers else []
+        lines.append(f"| {r['task']} | " + " | ".join(cells) + f" | {cell(r['oracle'])} | {cell(r['expert'])} | {ratio} |")
     a = results["average"]
-    lines.append("| **average** | " + " | ".join(f"**{a[label]:.0%}**" for label in labels)
-                 + f" | **{a['oracle']:.0%}** | **{a['expert']:.0%}** | |")
+    cells = [f"**{a[label]:.0%}**" for label in labels] + [f"**{100 * a[p]:.1f}**" if a[p] is not None else "-" for p in papers]
+    cells += [f"{100 * (a[labels[0]] - a[papers[0]]):+.1f}" if a[papers[0]] is not None else "-"] if papers else []
+    lines.append("| **average** | " + " | ".join(cells) + f" | **{a['oracle']:.0%}** | **{a['expert']:.0%}** | |")
     return "\n".join(lines)
 
 
@@ -153,6 +181,8 @@ def main() -> None:
     parser.add_argument("--oracle", metavar="EVAL_DIR")
     parser.add_argument("--expert")
     parser.add_argument("--previous", action="append", default=[], metavar="LABEL=RESULTS_JSON[#COLUMN]")
+    parser.add_argument("--paper", action="append", default=[], metavar="FILE#MODEL",
+                        help="a published column, e.g. benchmarks/paper_rlbench18.toml#rvt2 (repeatable)")
     parser.add_argument("--chart")
     parser.add_argument("--json")
     args = parser.parse_args()
@@ -161,7 +191,8 @@ def main() -> None:
         oracle, expert = from_oracle_bench(args.oracle_bench)
     else:
         oracle, expert = from_eval_and_record(args.oracle, args.expert)
-    results = collect(policies, oracle, expert, dict(load_previous(p) for p in args.previous))
+    results = collect(policies, oracle, expert, dict(load_previous(p) for p in args.previous),
+                      dict(load_paper(p) for p in args.paper))
     print(markdown(results))
     if args.chart:
         chart(results, Path(args.chart))

@@ -43,11 +43,20 @@ def test_every_command_parses_with_the_cli(path, gpus, tmp_path):
             assert (argv[0] == "torchrun") == (gpus > 1)
 
 
-@pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", [p for p in EXPERIMENT_FILES if "published" in runner.load(p)], ids=lambda p: p.stem)
 def test_published_raw_files_are_in_the_tree(path):
     published = runner.load(path)["published"]
     for raw in published["raw"]:
         assert (runner.REPOSITORY / raw).exists(), raw
+
+
+def test_evaluation_ranges_and_extra_evaluations(tmp_path):
+    """rvt2_18: 100 seeds as two disjoint ranges of 50, each its own report, and the paraphrases on the first."""
+    run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=3))
+    evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
+    assert [(a.seed, a.episodes, Path(a.out).name, a.paraphrases) for a in evals] == [
+        (10000, 50, "seed0_from10000", False), (10050, 50, "seed0_from10050", False),
+        (10000, 50, "seed0_paraphrases", True)]
 
 
 def test_print_is_the_default_and_names_each_phase(capsys):
@@ -67,6 +76,10 @@ def test_print_is_the_default_and_names_each_phase(capsys):
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nseeds = [0]\n[eval]\nepisodes_per_task = 1\n",
      "[train] has no 'steps'"),
     ("name = 'x'\ntasks = [\n", "not valid TOML"),
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 100\n"
+     "ranges = 3\n", "[eval] ranges = 3 does not divide episodes_per_task = 100"),
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 2\n"
+     "[eval.extra.p]\nseeds = 3\n", "unknown key 'seeds' in [eval.extra.p]"),
 ])
 def test_a_bad_file_is_one_line_and_exit_code_2(tmp_path, capsys, text, message):
     path = tmp_path / "bad.toml"

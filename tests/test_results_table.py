@@ -1,0 +1,50 @@
+"""benchmarks/results_table.py beside the paper: the RVT-2 paper's RLBench-18 column
+(benchmarks/paper_rlbench18.toml) against rvt2-18's task set, and a table with it built from a real
+evaluation journal (the rvt2-18 oracle's 900 episodes, published in benchmarks/results/)."""
+
+import gzip
+import json
+import tomllib
+
+import pytest
+
+from benchmarks import results_table
+from benchmarks.experiment import REPOSITORY
+from rvt2cli.eval.report import build_report
+from rvt2cli.tasks import tasks_of_set
+
+PAPER = REPOSITORY / "benchmarks" / "paper_rlbench18.toml"
+ORACLE = REPOSITORY / "benchmarks" / "results" / "rlbench18_oracle_50"
+
+
+@pytest.mark.parametrize("model", ["rvt2", "rvt", "peract"])
+def test_the_paper_column_names_every_rvt2_18_task_and_keeps_its_average(model):
+    figures = tomllib.loads(PAPER.read_text())[model]
+    tasks = {k: v for k, v in figures.items() if k != "average"}
+    assert set(tasks) == set(tasks_of_set("rlbench18"))
+    means = [mean for mean, _std in tasks.values()]
+    assert sum(means) / len(means) == pytest.approx(figures["average"], abs=0.05)  # the paper's rounding
+
+
+def test_a_table_beside_the_paper_from_a_real_journal():
+    lines = gzip.open(ORACLE / "episodes.jsonl.gz", "rt").read().splitlines()[1:]
+    # the oracle's episodes, read as a policy's: the table code cannot tell them apart
+    records = [{**record, "source": "policy"} for record in map(json.loads, lines) if record.get("source") == "oracle"]
+    report = build_report(records, {"seed": 10000, "episodes_per_task": 50})
+    oracle, expert = results_table.from_oracle_bench(str(ORACLE / "oracle_bench.json"))
+    paper = dict([results_table.load_paper(f"{PAPER}#rvt2")])
+    results = results_table.collect({"oracle journal": [report]}, oracle, expert, {}, paper)
+    table = results_table.markdown(results).splitlines()
+    assert table[0].startswith("| task | oracle journal | paper: rvt2 | oracle journal - paper: rvt2 (points) |")
+    assert len(table) == 2 + 18 + 1
+    close_jar = next(line for line in table if line.startswith("| close_jar |")).split(" | ")
+    rate = report["tasks"]["close_jar"]["policy"]["success_rate"]
+    assert close_jar[2] == "100 ± 0" and close_jar[3] == f"{100 * rate - 100:+.0f}"
+    assert results["average"]["paper: rvt2"] == pytest.approx(0.8144, abs=1e-4)
+    assert results["average"]["oracle journal"] == pytest.approx(
+        sum(report["tasks"][t]["policy"]["success_rate"] for t in report["tasks"]) / 18)
+
+
+def test_an_unknown_model_is_one_line():
+    with pytest.raises(SystemExit, match="has no model 'rvt3'; give FILE#MODEL with one of: rvt2, rvt, peract"):
+        results_table.load_paper(f"{PAPER}#rvt3")
