@@ -153,15 +153,20 @@ _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS
 _RENDER_THREADS = "LP_NUM_THREADS"
 
 
+# Reading episodes in parallel (extract-keyframes, train): at least this many files per worker process,
+# whose start (its imports) takes about as long as reading 20 of them.
+FILES_PER_WORKER = 32
+
+
 def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @contextlib.contextmanager
-def simulator_pool(workers: int, initializer, initargs=()):
-    """A pool of `workers` simulator processes (record, eval) that share the machine instead of each
-    sizing its thread pools to all of it: numerical libraries run one thread per process, and lavapipe
-    renders with cores // workers. On a 32-core machine 30 workers otherwise start about 70 threads each,
+def worker_pool(workers: int, initializer=None, initargs=()):
+    """A pool of `workers` processes (the simulators of record and eval, the readers of extract-keyframes
+    and train) that share the machine instead of each sizing its thread pools to all of it: numerical
+    libraries run one thread per process, and lavapipe renders with cores // workers. On a 32-core machine 30 workers otherwise start about 70 threads each,
     and spend their time switching between them. The limits are read when a library starts, which in a
     spawned process is before any initializer runs, so they travel in the environment the processes are
     started with; variables you set yourself are kept."""
@@ -188,4 +193,5 @@ def _start_worker(initializer, initargs) -> None:
     import torch
 
     torch.set_num_threads(1)  # the same arithmetic in every process, whatever the number of workers
-    initializer(*initargs)
+    if initializer is not None:
+        initializer(*initargs)

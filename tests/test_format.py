@@ -186,3 +186,46 @@ def test_episodes_record_rvt2s_version_also_from_a_source_tree():
     versions = software_versions("numpy", "no-such-distribution-rvt2-test")
     assert versions["rvt2"] == __version__ and versions["numpy"] == np.__version__
     assert versions["no-such-distribution-rvt2-test"] == "unknown"
+
+
+def test_the_compiled_schemas_judge_every_message_as_jsonschema_does(tmp_path):
+    """The reader checks messages with schemas compiled by fastjsonschema and asks jsonschema only to
+    explain a rejection; so the two must agree. Every JSON message of a real episode file, and each of its
+    fields deleted, retyped (text, bool, null, -1, an empty list, a list of text) or joined by an unknown one."""
+    import jsonschema
+
+    from rvt2cli.data import reader, schemas
+
+    path = tmp_path / "ep.mcap"
+    random_episode(path, frames=6, obs_every=5)
+    write_keyframes(path, KeyframeAnnotation(
+        keyframes=[Keyframe(frame=5, position=[0.1, 0.2, 0.3], quaternion=[0, 0, 0, 1], gripper_open=True,
+                            ignore_collisions=False, reasons=["last"])],
+        samples=[Sample(obs_frame=0, keyframe=0)], params={}))
+    data = path.read_bytes()
+    found = {schemas.EPISODE: reader.read_metadata(path, data)[1]}
+    for message in reader.iter_raw_messages(path, data):
+        if message.topic in reader._JSON_TOPICS:
+            found.setdefault(reader._JSON_TOPICS[message.topic], json.loads(message.data))
+    assert set(found) == {schemas.EPISODE, schemas.ROBOT_STATE, schemas.SIM_STATE, schemas.INSTRUCTION, schemas.KEYFRAMES}
+
+    def variants(obj):
+        yield obj
+        yield {**obj, "unknown_field": 1}
+        for key in obj:
+            yield {k: v for k, v in obj.items() if k != key}
+            for value in ("text", True, None, -1, [], ["text"]):
+                yield {**obj, key: value}
+
+    checked = 0
+    for name, obj in found.items():
+        walker = jsonschema.Draft202012Validator(json.loads(schemas.schema_text(name)))
+        for variant in variants(obj):
+            try:
+                schemas._compiled(name)(variant)
+                compiled_ok = True
+            except Exception:  # noqa: BLE001 - fastjsonschema's JsonSchemaValueException
+                compiled_ok = False
+            assert compiled_ok == walker.is_valid(variant), (name, variant)
+            checked += 1
+    assert checked > 100

@@ -75,12 +75,12 @@ def _thread_settings():
     return {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "LP_NUM_THREADS")}, blas
 
 
-def test_simulator_workers_share_the_machine():
+def test_workers_share_the_machine():
     pytest.importorskip("threadpoolctl")
-    from rvt2cli.runtime import simulator_pool, usable_cores
+    from rvt2cli.runtime import usable_cores, worker_pool
 
     before = {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "LP_NUM_THREADS")}
-    with simulator_pool(2, _nothing) as pool:
+    with worker_pool(2, _nothing) as pool:
         variables, blas = pool.submit(_thread_settings).result()
     assert variables["OMP_NUM_THREADS"] == (before["OMP_NUM_THREADS"] or "1")
     assert variables["LP_NUM_THREADS"] == (before["LP_NUM_THREADS"] or str(max(1, usable_cores() // 2)))

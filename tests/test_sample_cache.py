@@ -76,3 +76,35 @@ def test_bad_cache_input_is_one_line(cache, tiny_dataset, tmp_path, cli):
     r = cli("train", "--data", cache, tiny_dataset, "--out", tmp_path / "run", "--config", "small")
     assert_one_line_error(r, "one sample cache", "not both")
     assert not (tmp_path / "samples.npz").exists()
+
+
+def test_reading_episodes_in_worker_processes_gives_the_same_samples(tiny_dataset, monkeypatch, tmp_path):
+    """load_samples and extract_files with 2 worker processes (real spawned processes; the files-per-worker
+    floor lowered so that two files get two) against one process: the same samples, the same files."""
+    import shutil
+
+    from rvt2cli import runtime
+    from rvt2cli.keyframes.extract import extract_files
+
+    paths = episode_paths([str(tiny_dataset)])
+    one = load_samples(paths, progress=False)
+    monkeypatch.setattr(runtime, "FILES_PER_WORKER", 1)
+    two = load_samples(paths, progress=False, workers=2)
+    assert (one.tasks, one.instructions, one.episodes, one.bounds, one.rigs) == \
+        (two.tasks, two.instructions, two.episodes, two.bounds, two.rigs)
+    for name in ("task_index", "instruction_index", "episode_index", "keyframe_start", "keyframe_index",
+                 "final_keyframe", "target_gripper_open", "target_ignore_collisions"):
+        assert getattr(one, name) == getattr(two, name), name
+    for name in ("xyz", "rgb", "proprio", "target_position", "target_quaternion"):
+        assert all(np.array_equal(a, b) for a, b in zip(getattr(one, name), getattr(two, name), strict=True)), name
+
+    copies = {}
+    for workers in (1, 2):
+        folder = tmp_path / f"workers{workers}"
+        shutil.copytree(tiny_dataset, folder)
+        copied = episode_paths([str(folder)])
+        results = list(extract_files(copied, workers=workers))
+        assert [path for path, _ in results] == copied
+        assert all(not isinstance(annotation, UserError) for _, annotation in results)
+        copies[workers] = [path.read_bytes() for path in copied]
+    assert copies[1] == copies[2]

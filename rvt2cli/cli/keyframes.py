@@ -2,7 +2,7 @@
 
 import sys
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, number
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, integer, number
 from rvt2cli.errors import UserError
 
 
@@ -31,23 +31,24 @@ def register(subparsers) -> None:
                    help="drop each rest keyframe that the next rest keyframe moves by less than MM millimetres and turns "
                         f"by less than {d.merge_deg:g} degrees: an expert's re-aiming in small steps becomes one keyframe "
                         "(default 0: keep them)")
+    p.add_argument("--workers", type=integer(1, 256), default=None,
+                   help="processes reading and writing the files (default: one per usable core, at most one per 32 files)")
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
     from rvt2cli.data.paths import episode_paths
-    from rvt2cli.keyframes.extract import describe, extract_file
+    from rvt2cli.keyframes.extract import describe, extract_files
     from rvt2cli.keyframes.rule import KeyframeParams
+    from rvt2cli.runtime import usable_cores
 
     params = KeyframeParams(stop_velocity=args.stop_velocity, pause_velocity=args.pause_velocity, stop_buffer=args.stop_buffer,
                             obs_every=args.obs_every, merge_m=args.merge_refinements / 1000)
     failed = []
     paths = episode_paths(args.files)
-    for path in paths:
-        try:
-            annotation = extract_file(path, params, dry_run=args.dry_run)
-        except UserError as e:
-            print(f"rvt2: error: {e}", file=sys.stderr)
+    for path, annotation in extract_files(paths, params, args.dry_run, args.workers or usable_cores()):
+        if isinstance(annotation, UserError):
+            print(f"rvt2: error: {annotation}", file=sys.stderr)
             failed.append(path.name)
             continue
         print(f"{path}: {describe(annotation)}")

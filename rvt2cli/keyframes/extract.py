@@ -1,11 +1,14 @@
 """`rvt2 extract-keyframes`: find an episode's keyframes and training samples and store them in it."""
 
 from dataclasses import dataclass
+from itertools import repeat
 
 import numpy as np
 
+from rvt2cli import runtime
 from rvt2cli.data import Episode, read_episode, write_keyframes
 from rvt2cli.data.keyframes import Keyframe, KeyframeAnnotation, Sample
+from rvt2cli.errors import UserError
 from rvt2cli.keyframes.rule import (KeyframeParams, find_keyframes, ignore_collisions, merge_refinements, next_keyframe_index,
                                     observation_starts)
 
@@ -45,6 +48,25 @@ def extract_file(path, params: KeyframeParams = KeyframeParams(), dry_run: bool 
     if not dry_run:
         write_keyframes(path, annotation.keyframes)
     return annotation
+
+
+def extract_files(paths, params: KeyframeParams = KeyframeParams(), dry_run: bool = False, workers: int = 1):
+    """(path, Annotation or the UserError that refused the file) for each file, in the order given. Files
+    are independent, so `workers` processes (at most one per runtime.FILES_PER_WORKER files) give the same results."""
+    workers = min(workers, len(paths) // runtime.FILES_PER_WORKER)
+    if workers <= 1:
+        for path in paths:
+            yield path, _extract_or_refusal(path, params, dry_run)
+        return
+    with runtime.worker_pool(workers) as pool:
+        yield from zip(paths, pool.map(_extract_or_refusal, paths, repeat(params), repeat(dry_run)))
+
+
+def _extract_or_refusal(path, params: KeyframeParams, dry_run: bool):
+    try:
+        return extract_file(path, params, dry_run)
+    except UserError as e:
+        return e
 
 
 def describe(annotation: Annotation) -> str:

@@ -22,7 +22,7 @@ from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.record.expert import ExpertRun, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
 from rvt2cli.robot import RobotFacts
-from rvt2cli.runtime import simulator_pool
+from rvt2cli.runtime import worker_pool
 from rvt2cli.tasks import Task, episode_variation, get_task
 
 
@@ -245,7 +245,7 @@ def _record_parallel(tasks, summaries, out_dir, seed, workers, options, max_atte
                     return name, queue.next_seed - 1
         return None
 
-    with simulator_pool(workers, _init_worker, (str(out_dir), options)) as pool:
+    with worker_pool(workers, _init_worker, (str(out_dir), options)) as pool:
         pending = {}
         while True:
             while len(pending) < workers and (job := next_job()) is not None:

@@ -27,6 +27,7 @@ from safetensors.numpy import load_file, save_file
 from rvt2cli import __version__
 from rvt2cli.atomic import atomic_path, ensure_folder
 from rvt2cli.errors import UserError
+from rvt2cli.runtime import usable_cores
 from rvt2cli.train.samples import SampleSet, load_samples, select_samples
 
 CACHE_FORMAT = 2  # 2: keyframe_index, final_keyframe per sample (format 1 files read with -1, "unknown", and False)
@@ -106,7 +107,7 @@ def pack_sample_cache(data: list[str], out: str | Path, episodes_per_task: int |
     _require_cache_name(out)  # before minutes of loading
     ensure_folder(out.parent)
     samples = load_samples(episode_paths(data), include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only,
-                           cameras=cameras)
+                           cameras=cameras, workers=usable_cores())
     samples = samples.subset(select_samples(samples, episodes_per_task))
     cache = InstructionCache(max(c.lang_tokens for c in CONFIGS.values()))  # every config takes a prefix
     cache(samples.instructions)

@@ -4,7 +4,9 @@ A sample is the fused cloud at an observation frame, the proprio state there, th
 the next keyframe after it (position, orientation, gripper, collision flag) as the target.
 """
 
+import contextlib
 from dataclasses import dataclass, field
+from itertools import repeat
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +14,7 @@ from tqdm import tqdm
 
 from rvt2cli.errors import UserError
 from rvt2cli.model.observation import proprio_vector
+from rvt2cli import runtime
 
 
 @dataclass
@@ -57,55 +60,69 @@ class SampleSet:
             table.append(value)
         return table.index(value)
 
-    def add_episode(self, path: Path, keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None) -> int:
-        """Add an annotated episode's samples (with `keyframe_starts_only`, those observed at frame 0 or at
-        a keyframe; with `cameras`, clouds fused from those cameras only)."""
-        from rvt2cli.data.reader import read_episode
+    def extend(self, other: "SampleSet") -> int:
+        """Append another set's samples (one episode's, from `episode_samples`), its tables merged into ours."""
+        per_sample = ["xyz", "rgb", "proprio", "target_position", "target_quaternion", "target_gripper_open",
+                      "target_ignore_collisions", "keyframe_start", "keyframe_index", "final_keyframe"]
+        for name in per_sample:
+            getattr(self, name).extend(getattr(other, name))
+        for column, table, theirs in (("task_index", self.tasks, other.tasks),
+                                      ("instruction_index", self.instructions, other.instructions),
+                                      ("episode_index", self.episodes, other.episodes)):
+            ours = [self._index(table, value) for value in theirs]
+            getattr(self, column).extend(ours[i] for i in getattr(other, column))
+        self.bounds.update(other.bounds)
+        self.rigs.update(other.rigs)
+        self.skipped_empty += other.skipped_empty
+        return len(other)
 
-        ep = read_episode(path)
-        if cameras and not set(cameras) <= set(ep.meta.cameras):
-            missing = ", ".join(c for c in cameras if c not in ep.meta.cameras)
-            raise UserError(f"{path}: has no camera {missing} (it has {', '.join(ep.meta.cameras)}); choose --cameras among them")
-        task = self._index(self.tasks, ep.meta.task)
-        self.bounds[ep.meta.task] = list(ep.meta.scene_bounds)
-        self.rigs[ep.meta.task] = {"cameras": list(cameras or ep.meta.cameras), "image_size": ep.meta.extra.get("image_size")}
-        instruction = self._index(self.instructions, ep.instruction["text"])
-        episode = self._index(self.episodes, str(path))
-        annotation = ep.require_keyframes()
-        starts = annotation.starts
-        fingers = ep.meta.robot.fingers(ep.robot.joint_positions, ep.robot.joint_names, str(path))
-        added = 0
-        for sample in annotation.samples:
-            frame, k = sample.obs_frame, sample.keyframe
-            if keyframe_starts_only and frame not in starts:
-                continue
-            cloud = ep.cloud(frame, cameras)
-            if len(cloud) == 0:
-                self.skipped_empty += 1
-                continue
-            target = annotation.keyframes[k]
-            self.xyz.append(cloud.xyz)
-            self.rgb.append(cloud.rgb)
-            self.proprio.append(proprio_vector(ep.robot.gripper_command[frame] > 0, fingers[frame], k))
-            self.target_position.append(np.asarray(target.position, np.float32))
-            self.target_quaternion.append(np.asarray(target.quaternion, np.float64))
-            self.target_gripper_open.append(target.gripper_open)
-            self.target_ignore_collisions.append(target.ignore_collisions)
-            self.task_index.append(task)
-            self.instruction_index.append(instruction)
-            self.episode_index.append(episode)
-            self.keyframe_start.append(frame in starts)
-            self.keyframe_index.append(k)
-            self.final_keyframe.append(k == len(annotation.keyframes) - 1)
-            added += 1
-        return added
+
+def episode_samples(path: Path, keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None) -> SampleSet:
+    """An annotated episode's samples (with `keyframe_starts_only`, those observed at frame 0 or at a
+    keyframe; with `cameras`, clouds fused from those cameras only)."""
+    from rvt2cli.data.reader import read_episode
+
+    ep = read_episode(path)
+    if cameras and not set(cameras) <= set(ep.meta.cameras):
+        missing = ", ".join(c for c in cameras if c not in ep.meta.cameras)
+        raise UserError(f"{path}: has no camera {missing} (it has {', '.join(ep.meta.cameras)}); choose --cameras among them")
+    samples = SampleSet(tasks=[ep.meta.task], instructions=[ep.instruction["text"]], episodes=[str(path)],
+                        bounds={ep.meta.task: list(ep.meta.scene_bounds)},
+                        rigs={ep.meta.task: {"cameras": list(cameras or ep.meta.cameras), "image_size": ep.meta.extra.get("image_size")}})
+    annotation = ep.require_keyframes()
+    starts = annotation.starts
+    fingers = ep.meta.robot.fingers(ep.robot.joint_positions, ep.robot.joint_names, str(path))
+    for sample in annotation.samples:
+        frame, k = sample.obs_frame, sample.keyframe
+        if keyframe_starts_only and frame not in starts:
+            continue
+        cloud = ep.cloud(frame, cameras)
+        if len(cloud) == 0:
+            samples.skipped_empty += 1
+            continue
+        target = annotation.keyframes[k]
+        samples.xyz.append(cloud.xyz)
+        samples.rgb.append(cloud.rgb)
+        samples.proprio.append(proprio_vector(ep.robot.gripper_command[frame] > 0, fingers[frame], k))
+        samples.target_position.append(np.asarray(target.position, np.float32))
+        samples.target_quaternion.append(np.asarray(target.quaternion, np.float64))
+        samples.target_gripper_open.append(target.gripper_open)
+        samples.target_ignore_collisions.append(target.ignore_collisions)
+        samples.task_index.append(0)
+        samples.instruction_index.append(0)
+        samples.episode_index.append(0)
+        samples.keyframe_start.append(frame in starts)
+        samples.keyframe_index.append(k)
+        samples.final_keyframe.append(k == len(annotation.keyframes) - 1)
+    return samples
 
 
 def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True,
                  keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None,
-                 tasks: list[str] | None = None) -> SampleSet:
-    """Read every episode's samples (of these tasks only, if given). Refuses, in one line, files without
-    keyframes."""
+                 tasks: list[str] | None = None, workers: int = 1) -> SampleSet:
+    """Read every episode's samples (of these tasks only, if given), in the order given, with up to
+    `workers` processes (at most one per runtime.FILES_PER_WORKER files; the result is the same). Refuses, in one
+    line, files without keyframes."""
     from rvt2cli.data import topics
     from rvt2cli.data.reader import read_episode_overview
 
@@ -125,8 +142,15 @@ def load_samples(paths: list[Path], include_failures: bool = False, progress: bo
         folder = unannotated[0].parent
         raise UserError(f"{names}: no keyframes; run `rvt2 extract-keyframes {folder}/` first")
     samples = SampleSet()
-    for path in tqdm(usable, desc="load samples", unit="ep", disable=not progress):
-        samples.add_episode(path, keyframe_starts_only, cameras)
+    workers = min(workers, len(usable) // runtime.FILES_PER_WORKER)
+    with contextlib.ExitStack() as stack:
+        if workers > 1:
+            pool = stack.enter_context(runtime.worker_pool(workers))
+            parts = pool.map(episode_samples, usable, repeat(keyframe_starts_only), repeat(cameras))
+        else:
+            parts = (episode_samples(path, keyframe_starts_only, cameras) for path in usable)
+        for part in tqdm(parts, total=len(usable), desc="load samples", unit="ep", disable=not progress):
+            samples.extend(part)
     if len(samples) == 0:
         raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else "")
                         + (f" of the tasks {', '.join(tasks)}" if tasks is not None else ""))

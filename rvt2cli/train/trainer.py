@@ -30,6 +30,7 @@ from rvt2cli.errors import UserError
 from rvt2cli.model.config import ModelConfig, get_config
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.model.policy import RVT2Policy
+from rvt2cli.runtime import usable_cores
 from rvt2cli.train.batches import BatchStream, PackedSamples, TaskSampler, make_batch, pack
 from rvt2cli.train.checkpoint import Checkpoint, load_checkpoint, load_weights, save_checkpoint
 from rvt2cli.train.metrics import headline, precision_report, score_predictions, task_rows
@@ -157,8 +158,10 @@ def load_training_data(data: list[str], include_failures: bool, progress: bool, 
                             f"pack the cache with `rvt2 pack-samples --cameras {','.join(cameras)}`")
         return samples, embeddings
     paths = episode_paths(data)
+    # every process of a several-GPU run reads the episodes: they share this machine's cores
+    workers = max(1, usable_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     return load_samples(paths, include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only,
-                        cameras=cameras, tasks=tasks), {}
+                        cameras=cameras, tasks=tasks, workers=workers), {}
 
 
 def split_episodes(samples, val_episodes: int, selected: list[int] | None = None) -> tuple[list[int], list[int]]:

@@ -1,0 +1,59 @@
+"""Reading recorded episodes: `rvt2 extract-keyframes` and the training data load, per file and in all.
+
+    python -m benchmarks.read_bench DEMOS... [--workers N] [--json out.json]
+
+DEMOS are episode files or folders (recorded by `rvt2 record`; copied first, since extraction rewrites
+them). Times `extract_files` (what `rvt2 extract-keyframes` runs) and `load_samples` (what `rvt2 train`
+reads episodes with) with one process, and with --workers processes where given.
+"""
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from benchmarks.machine import describe
+from rvt2cli.data.paths import episode_paths
+from rvt2cli.keyframes.extract import extract_files
+from rvt2cli.train.samples import load_samples
+
+
+def measure(paths: list[Path], workers: int) -> dict:
+    start = time.perf_counter()
+    refused = [p for p, annotation in extract_files(paths, workers=workers) if isinstance(annotation, Exception)]
+    extract = time.perf_counter() - start
+    start = time.perf_counter()
+    samples = load_samples(paths, progress=False, workers=workers)
+    load = time.perf_counter() - start
+    return {"workers": workers, "files": len(paths), "refused": len(refused), "extract_s": extract, "load_s": load,
+            "extract_s_per_file": extract / len(paths), "load_s_per_file": load / len(paths), "samples": len(samples),
+            "points_per_sample": sum(len(x) for x in samples.xyz) / max(1, len(samples))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("demos", nargs="+")
+    parser.add_argument("--workers", type=int, default=1, help="also measure with this many processes")
+    parser.add_argument("--json")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as work:
+        copies = []
+        for path in episode_paths(args.demos):
+            copies.append(Path(work) / path.name)
+            shutil.copyfile(path, copies[-1])
+        sizes = [p.stat().st_size for p in copies]
+        runs = [measure(copies, w) for w in sorted({1, args.workers})]
+    print(f"{len(copies)} episodes, {sum(sizes) / len(sizes) / 1e6:.2f} MB each")
+    print("| processes | extract-keyframes, s per file | load for training, s per file | samples | points per sample |")
+    print("|---|---|---|---|---|")
+    for r in runs:
+        print(f"| {r['workers']} | {r['extract_s_per_file']:.3f} | {r['load_s_per_file']:.3f} | {r['samples']} | {r['points_per_sample']:.0f} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": describe(), "mb_per_file": sum(sizes) / len(sizes) / 1e6,
+                                               "runs": runs}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
