@@ -26,12 +26,10 @@ where the arm no longer hides the sphere.
 """
 
 import numpy as np
+import sapien
 
-SCREW_STEP = 0.01     # rad: joint steps of the straight-line motions (ManiSkill's experts use 0.1)
-COARSE_SCREW_STEP = 0.1
-MERE_TURN_RAD = np.radians(0.5)  # a screw motion that fails on a turn this small is retried as a shift
-SETTLE_STEPS = 10     # control steps holding each motion's last command, so the arm rests where it stopped
-FINGER_LENGTH = 0.025
+from rvt2cli.record.motions import solver, top_down_grasp
+
 APPROACH_M = 0.01      # the aligned peg's head stops this far before the hole's face (as ManiSkill's)
 INSERT_BEYOND_M = 0.05  # the insertion aims this far past the goal: the fingers meet the box first
 # The insertion runs at half the expert's speed: the arm's tracking error while it accelerates sags the
@@ -42,67 +40,15 @@ LIFT_M = 0.10          # pick_cube: the grasped cube rises this far...
 DRAW_BACK_M = 0.20     # ...and moves this far towards the robot's base before the carry
 
 
-def _solver(env, speed: float):
-    import sapien
-    from mani_skill.examples.motionplanning.panda.motionplanner import PandaArmMotionPlanningSolver
-
-    class PreciseSolver(PandaArmMotionPlanningSolver):
-        def move_to_pose_with_screw(self, pose, dry_run: bool = False, refine_steps: int = SETTLE_STEPS):
-            from mani_skill.utils.structs.pose import to_sapien_pose
-
-            target = self._transform_pose_for_planning(to_sapien_pose(pose))
-            result = self._plan(target)
-            if result is None:
-                # mplib's screw motion can fail on the hair's-breadth turn (hundredths of a degree) left between
-                # the orientation the arm holds and the one it was sent to: keep the one it holds
-                here = self.base_env.agent.tcp.pose.sp
-                if (here.inv() * target).to_transformation_matrix()[:3, :3].trace() > 1 + 2 * np.cos(MERE_TURN_RAD):
-                    result = self._plan(sapien.Pose(target.p, here.q))
-            if result is None:
-                return -1
-            return result if dry_run else self.follow_path(result, refine_steps=refine_steps)
-
-        def _plan(self, target):
-            for step in (SCREW_STEP, COARSE_SCREW_STEP):  # fine steps check more states: fall back to ManiSkill's
-                try:
-                    result = self.planner.plan_screw(np.concatenate([target.p, target.q]),
-                                                     self.robot.get_qpos().cpu().numpy()[0],
-                                                     time_step=self.base_env.control_timestep, qpos_step=step,
-                                                     use_point_cloud=self.use_point_cloud)
-                except RuntimeError:  # toppra cannot time a path of a few tiny steps ("not controllable")
-                    continue
-                if result["status"] == "Success":
-                    return result
-            return None
-
-    return PreciseSolver(env, debug=False, vis=False, base_pose=env.unwrapped.agent.robot.pose,
-                         visualize_target_grasp_pose=False, print_env_info=False,
-                         joint_vel_limits=speed, joint_acc_limits=speed)
-
-
-def _grasp_from_above(scene, actor, at=None):
-    """ManiSkill's top-down grasp of `actor`: fingers closing across its bounding box, nearest the way the
-    open gripper faces now, FINGER_LENGTH deep, centred `at` (default: the box's grasp centre)."""
-    from mani_skill.examples.motionplanning.base_motionplanner.utils import compute_grasp_info_by_obb, get_actor_obb
-
-    approaching = np.array([0, 0, -1])
-    closing = scene.agent.tcp.pose.to_transformation_matrix()[0, :3, 1].cpu().numpy()
-    grasp = compute_grasp_info_by_obb(get_actor_obb(actor), approaching=approaching, target_closing=closing,
-                                      depth=FINGER_LENGTH)
-    return scene.agent.build_grasp_pose(approaching, grasp["closing"], grasp["center"] if at is None else at)
-
-
 def insert_peg(env, seed=None):
     """PegInsertionSide-v1: grasp the peg, align it a peg's length before the hole, re-aim from its
     measured pose, push it in along the hole's axis. Returns -1 when a motion cannot be planned."""
-    import sapien
-
     env.reset(seed=seed)
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     scene = env.unwrapped
     half_length = scene.peg_half_sizes[0, 0].item()
 
-    grasp_pose = _grasp_from_above(scene, scene.peg)
+    grasp_pose = top_down_grasp(scene, scene.peg)
     grasp_pose = grasp_pose * sapien.Pose([-max(0.05, half_length / 2 + 0.01), 0, 0])  # towards the tail
     peg_on_table = scene.peg.pose
 
@@ -137,12 +83,10 @@ def pick_cube(env, seed=None):
     motion before the carry: the cube lifted LIFT_M and drawn DRAW_BACK_M towards the robot's base. Its
     motions are insert_peg's (fine joint steps, each held until the arm rests). Returns -1 when a motion
     cannot be planned."""
-    import sapien
-
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)  # ManiSkill's speed; fine steps, which plan the lift where 0.1 rad steps fail
-    grasp_pose = _grasp_from_above(scene, scene.cube, at=scene.cube.pose.sp.p)  # ManiSkill's: at the cube's centre
+    planner = solver(env, speed=0.9)  # ManiSkill's speed; fine steps, which plan the lift where 0.1 rad steps fail
+    grasp_pose = top_down_grasp(scene, scene.cube, at=scene.cube.pose.sp.p)  # ManiSkill's: at the cube's centre
     if planner.move_to_pose_with_screw(grasp_pose * sapien.Pose([0, 0, -0.05])) == -1:
         return -1
     if planner.move_to_pose_with_screw(grasp_pose, refine_steps=0) == -1:  # the arrival and the grasp: one keyframe

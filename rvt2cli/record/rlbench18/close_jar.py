@@ -12,10 +12,10 @@ import torch
 
 from mani_skill.utils.registration import register_env
 
+from rvt2cli.record.motions import pick_and_place, solver
 from rvt2cli.record.rlbench18.base import VariationEnv
 from rvt2cli.record.rlbench18.colors import COLORS, other_color, rgba
 from rvt2cli.record.rlbench18.layout import scatter
-from rvt2cli.record.rlbench18.motions import pick_and_place
 
 BODY_RADIUS, BODY_HEIGHT = 0.035, 0.07  # m: the jar, a cylinder standing on the table...
 NECK_RADIUS, NECK_HEIGHT = 0.02, 0.02   # ...with a narrower neck on top
@@ -99,11 +99,10 @@ class CloseJarEnv(VariationEnv):
 def expert(env, seed=None):
     """Grasp the lid by its rim, carry it over the named jar, lower it onto the neck and let go.
     Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     jar = scene.target_jars[0].pose.sp.p
     return pick_and_place(planner, scene, scene.lid, [jar[0], jar[1], CLOSED_Z],
                           carry_z=BODY_HEIGHT + NECK_HEIGHT + CARRY_CLEARANCE)

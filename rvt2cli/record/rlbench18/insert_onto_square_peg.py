@@ -111,14 +111,13 @@ def expert(env, seed=None):
     """Grasp the ring's wall nearest the robot from above, carry it over the named spoke turned to the
     spoke's square, lower it onto the spoke's top, let go and back off upwards. -1 if a motion cannot be
     planned."""
-    from rvt2cli.record.experts import _grasp_from_above, _solver
-    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
+    from rvt2cli.record.motions import grasp_from_above, place_from_above, solver, top_down_grasp
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
 
-    grasp = _grasp_from_above(scene, scene.ring)
+    grasp = top_down_grasp(scene, scene.ring)
     closing = grasp.to_transformation_matrix()[:3, 1]
     ring_centre = scene.ring.pose.sp.p
     walls = [ring_centre + sign * (RING_OUTER - RING_WALL / 2) * closing for sign in (-1, 1)]

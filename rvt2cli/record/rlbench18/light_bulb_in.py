@@ -126,15 +126,14 @@ RELEASE_M = 0.004  # ...and is let go this far above the socket's floor
 def expert(env, seed=None):
     """Grasp the named holder's bulb by its neck from above, carry it over the lamp, lower its cap into
     the socket, let go and back off upwards. -1 if a motion cannot be planned."""
-    from rvt2cli.record.experts import _grasp_from_above, _solver
-    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
+    from rvt2cli.record.motions import grasp_from_above, place_from_above, solver, top_down_grasp
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     bulb = scene.bulbs[scene.named_holders()[0]]
 
-    grasp = _grasp_from_above(scene, bulb, at=(bulb.pose.sp * sapien.Pose([0, 0, NECK_Z])).p)
+    grasp = top_down_grasp(scene, bulb, at=(bulb.pose.sp * sapien.Pose([0, 0, NECK_Z])).p)
     if not grasp_from_above(planner, grasp):
         return -1
 

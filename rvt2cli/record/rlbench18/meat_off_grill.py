@@ -14,9 +14,8 @@ from mani_skill.utils.building import actors
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs import Pose
 
-from rvt2cli.record.experts import _grasp_from_above, _solver
+from rvt2cli.record.motions import grasp_from_above, solver, top_down_grasp
 from rvt2cli.record.rlbench18.base import VariationEnv
-from rvt2cli.record.rlbench18._motions import grasp_from_above
 
 MEATS = ("chicken", "steak")                  # RLBench's order (its variation index)
 GRILL_HALF = (0.08, 0.13, 0.04)               # m: the grill's half sizes (x deep, y across, z high)
@@ -111,9 +110,9 @@ def expert(env, seed=None):
     lift the hand clear."""
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     meat = scene.meats[scene.variation]
-    grasp = _grasp_from_above(scene, meat, at=meat.pose.sp.p)
+    grasp = top_down_grasp(scene, meat, at=meat.pose.sp.p)
     grill_top = scene.grill.pose.sp.p[2] + GRILL_HALF[2]
     lifted = sapien.Pose([*grasp.p[:2], grill_top + LIFT_M], grasp.q)
     if not grasp_from_above(planner, grasp, above=lifted) or planner.move_to_pose_with_screw(lifted) == -1:

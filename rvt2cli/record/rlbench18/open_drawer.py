@@ -11,7 +11,7 @@ import torch
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs import Pose
 
-from rvt2cli.record.experts import _solver
+from rvt2cli.record.motions import solver
 from rvt2cli.record.rlbench18 import cabinet
 from rvt2cli.record.rlbench18.base import VariationEnv
 
@@ -99,5 +99,5 @@ def expert(env, seed=None):
     """Grip the named drawer's handle from the front and pull it straight out."""
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     return pull_open(planner, scene, scene.variation)

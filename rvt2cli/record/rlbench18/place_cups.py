@@ -13,9 +13,9 @@ import torch
 
 from mani_skill.utils.registration import register_env
 
+from rvt2cli.record.motions import pick_and_place, solver, top_down_grasp
 from rvt2cli.record.rlbench18.base import VariationEnv
 from rvt2cli.record.rlbench18.layout import scatter
-from rvt2cli.record.rlbench18.motions import pick_and_place
 from rvt2cli.record.rlbench18.stack_cups import HEIGHT, build_cup
 
 CUP_COLOR = [0.8, 0.8, 0.9, 1.0]  # pale grey-blue, the same for every cup: the instruction counts them
@@ -89,11 +89,10 @@ class PlaceCupsEnv(VariationEnv):
 def expert(env, seed=None):
     """Take the cups nearest the holder first and put each mouth-down over the next free peg (the nearest
     peg first). Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _grasp_from_above, _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     holder = scene.holder.pose.sp.p
     cups = sorted(scene.cups, key=lambda c: np.linalg.norm(c.pose.sp.p[:2] - holder[:2]))[:scene.count]
     free = list(scene.pegs())
@@ -102,7 +101,7 @@ def expert(env, seed=None):
         peg = min(free, key=lambda p: np.linalg.norm(p - cup.pose.sp.p[:2]))
         free = [p for p in free if p is not peg]
         top = BOARD_TOP + holder[2] + HEIGHT  # the cup's origin (its bottom, upturned) once it stands on the board
-        grasp = _grasp_from_above(scene, cup, at=cup.pose.sp.p - [0, 0, GRIP_BELOW_TOP])
+        grasp = top_down_grasp(scene, cup, at=cup.pose.sp.p - [0, 0, GRIP_BELOW_TOP])
         result = pick_and_place(planner, scene, cup, [*peg, top], carry_z=top + PEG_HEIGHT + CARRY_CLEARANCE,
                                 grasp=grasp)
         if result == -1:

@@ -124,15 +124,14 @@ RELEASE_M = 0.015  # ...and is let go this far above its opening
 def expert(env, seed=None):
     """Grasp the named shape from above, carry it over its opening, let go and back off upwards. -1 if a
     motion cannot be planned."""
-    from rvt2cli.record.experts import _grasp_from_above, _solver
-    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
+    from rvt2cli.record.motions import grasp_from_above, place_from_above, solver, top_down_grasp
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     shape = scene.shapes[scene.variation]
 
-    grasp = _grasp_from_above(scene, shape, at=shape.pose.sp.p)
+    grasp = top_down_grasp(scene, shape, at=shape.pose.sp.p)
     if not grasp_from_above(planner, grasp):
         return -1
 

@@ -93,15 +93,14 @@ RELEASE_M = 0.005  # ...and is let go this far above where it rests
 def expert(env, seed=None):
     """Grasp the bottle's body from above, carry it over the named cradle turned along the rack, lower it
     onto the rails, let go and back off upwards. -1 if a motion cannot be planned."""
-    from rvt2cli.record.experts import _grasp_from_above, _solver
-    from rvt2cli.record.rlbench18._motions import grasp_from_above, place_from_above
+    from rvt2cli.record.motions import grasp_from_above, place_from_above, solver, top_down_grasp
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     location = LOCATIONS[scene.variation]
 
-    grasp = _grasp_from_above(scene, scene.bottle, at=scene.bottle.pose.sp.p)  # at the body's centre
+    grasp = top_down_grasp(scene, scene.bottle, at=scene.bottle.pose.sp.p)  # at the body's centre
     if not grasp_from_above(planner, grasp):
         return -1
 

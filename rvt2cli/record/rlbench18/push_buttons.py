@@ -125,11 +125,11 @@ POINTING_DOWN = [0.0, 1.0, 0.0, 0.0]  # wxyz: the TCP's orientation at rest (tur
 def expert(env, seed=None):
     """Close the gripper, then for each button to press: stop above its cap, push it down, come back up.
     Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
+    from rvt2cli.record.motions import solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     result = planner.close_gripper()
     for centre in scene.button_centres()[: len(variation_colors(scene.variation))]:
         above = sapien.Pose(centre + [0, 0, ABOVE_M], POINTING_DOWN)

@@ -153,12 +153,11 @@ def expert(env, seed=None):
     """Grasp the named item from above, across its narrow side; lift it level with the cupboard's floor;
     carry it, turned to go in lengthways, before the cupboard, then straight in; let go and back out the
     same way. -1 if a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
-    from rvt2cli.record.rlbench18._motions import grasp_from_above
+    from rvt2cli.record.motions import grasp_from_above, solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     grocery, actor = GROCERIES[scene.variation], scene.groceries[scene.variation]
     cupboard = scene.cupboard.pose.sp.to_transformation_matrix()[:3, :3]
     down = np.array([0, 0, -1.0])

@@ -13,7 +13,7 @@ from mani_skill.utils.building import actors
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs import Pose
 
-from rvt2cli.record.experts import _grasp_from_above, _solver
+from rvt2cli.record.motions import solver, top_down_grasp
 from rvt2cli.record.rlbench18 import cabinet
 from rvt2cli.record.rlbench18.open_drawer import PULL_M, CabinetEnv, pull_open
 
@@ -70,14 +70,14 @@ def expert(env, seed=None):
     the block from above, lift it to just above the drawer's walls, carry it over the drawer's open part and let go."""
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     drawer = scene.variation
     if pull_open(planner, scene, drawer) == -1:
         return -1
     planner.open_gripper()
     # rising and turning in one motion: rising alone passes near a singular pose in some scenes (a 10 cm rise
     # took 1372 control steps in one of 20). Where this one does too, back off the way the hand came first.
-    grasp = _grasp_from_above(scene, scene.item)
+    grasp = top_down_grasp(scene, scene.item)
     risen = sapien.Pose(scene.agent.tcp.pose.sp.p + [0, 0, BACK_OFF_M], grasp.q)
     plan = planner.move_to_pose_with_screw(risen, dry_run=True)
     if plan == -1 or len(plan["position"]) > LONGEST_STEPS:

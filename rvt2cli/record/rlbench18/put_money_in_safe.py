@@ -13,7 +13,7 @@ from mani_skill.utils.building import actors
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs import Pose
 
-from rvt2cli.record.experts import _solver
+from rvt2cli.record.motions import solver
 from rvt2cli.record.rlbench18.base import VariationEnv, build_fixture
 from rvt2cli.record.rlbench18.open_drawer import tilted_grasp
 
@@ -104,7 +104,7 @@ def expert(env, seed=None):
     named shelf; slide them in; let go; push them further in by their end with the closed fingers; back off."""
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.75)
+    planner = solver(env, speed=0.75)
     money = scene.money.pose.sp
     grip = money * sapien.Pose([0, 0, GRIP_HEIGHT_M - MONEY_HALF[2]])
     grasp = tilted_grasp(scene, sapien.Pose(q=money.q), grip.p)

@@ -18,9 +18,9 @@ from transforms3d.euler import euler2quat
 from mani_skill.utils.building import actors
 from mani_skill.utils.registration import register_env
 
+from rvt2cli.record.motions import heading, lower_and_slide, pick_up_tool, solver, tcp_for
 from rvt2cli.record.rlbench18.base import VariationEnv
 from rvt2cli.record.rlbench18.colors import RLBENCH_COLORS, rgba
-from rvt2cli.record.rlbench18.handheld import heading, lower_and_slide, pick_up, tcp_for
 
 COLORS = list(RLBENCH_COLORS)
 NUM_SQUARES = 3
@@ -95,15 +95,14 @@ ABOVE_TABLE_M = 0.003     # the stick's underside slides this far above the tabl
 def expert(env, seed=None):
     """Grasp the stick near its end, lift it, turn it across the way to the target square behind the cube,
     lower it there and drag the cube onto the square. Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     stick = scene.stick.pose.sp
     along = Rotation.from_quat(stick.q, scalar_first=True).apply([1.0, 0.0, 0.0])
     along = along if along[0] > 0 else -along  # from the end nearer the robot to the far one
-    if not pick_up(planner, scene, scene.stick, stick.p - (STICK_HALF[0] - GRIP_FROM_END_M) * along):
+    if not pick_up_tool(planner, scene, scene.stick, stick.p - (STICK_HALF[0] - GRIP_FROM_END_M) * along):
         return -1
 
     cube = scene.cube.pose.sp.p

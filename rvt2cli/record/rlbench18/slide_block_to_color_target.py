@@ -82,11 +82,11 @@ def expert(env, seed=None):
     """Close the gripper, come down behind the block on the far side from the named target, push it
     in a straight line until its centre is over the target's centre, and lift away; each motion ends at
     rest. The fingers face the push across their width. Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
+    from rvt2cli.record.motions import solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     block = scene.block.pose.sp.p
     goal = scene.goal_target.pose.sp.p
     direction = np.array([*(goal - block)[:2], 0.0])

@@ -14,10 +14,10 @@ import torch
 from mani_skill.utils.building import actors
 from mani_skill.utils.registration import register_env
 
+from rvt2cli.record.motions import pick_and_place, solver
 from rvt2cli.record.rlbench18.base import VariationEnv
 from rvt2cli.record.rlbench18.colors import COLORS, other_color, rgba
 from rvt2cli.record.rlbench18.layout import scatter
-from rvt2cli.record.rlbench18.motions import pick_and_place
 
 HEIGHTS = (2, 3, 4)             # blocks per tower: the variation is colour index * 3 + height index
 BLOCKS = 4                      # of the target colour, and as many distractors
@@ -87,11 +87,10 @@ CARRY_CLEARANCE = 0.08  # m: a carried block's centre passes this far over the t
 def expert(env, seed=None):
     """Pick the target blocks one by one (the nearest to the square first) and stack them on the square.
     Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     square = scene.square.pose.sp.p
     blocks = sorted(scene.targets, key=lambda b: np.linalg.norm(b.pose.sp.p[:2] - square[:2]))[:scene.height]
     result = -1

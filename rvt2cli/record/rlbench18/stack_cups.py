@@ -13,10 +13,10 @@ import torch
 
 from mani_skill.utils.registration import register_env
 
+from rvt2cli.record.motions import DROP_M, pick_and_place, solver
 from rvt2cli.record.rlbench18.base import VariationEnv
 from rvt2cli.record.rlbench18.colors import COLORS, other_color, rgba
 from rvt2cli.record.rlbench18.layout import scatter
-from rvt2cli.record.rlbench18.motions import DROP, pick_and_place
 
 BOTTOM_RADIUS, TOP_RADIUS, HEIGHT = 0.025, 0.035, 0.06  # m, at the middle of the wall
 WALL, SIDES = 0.004, 12
@@ -108,18 +108,17 @@ def _rim_grasp(scene, cup):
 def expert(env, seed=None):
     """Pinch each other cup's wall (the nearest first), carry it over the named cup, and let it drop in.
     Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     base = scene.base_cups[0]
     others = sorted((c for c in scene.cups if c is not base),
                     key=lambda c: np.linalg.norm(c.pose.sp.p[:2] - base.pose.sp.p[:2]))
     result = -1
     for level, cup in enumerate(others, start=1):
         under = base.pose.sp.p
-        goal = [under[0], under[1], under[2] + level * NEST + RELEASE_ABOVE - DROP]  # pick_and_place adds DROP
+        goal = [under[0], under[1], under[2] + level * NEST + RELEASE_ABOVE - DROP_M]  # pick_and_place adds DROP_M
         rim = under[2] + HEIGHT + (level - 1) * NEST  # the stack's rim, m
         result = pick_and_place(planner, scene, cup, goal, carry_z=rim + CARRY_CLEARANCE, grasp=_rim_grasp(scene, cup))
         if result == -1:

@@ -15,8 +15,8 @@ from transforms3d.euler import euler2quat
 
 from mani_skill.utils.registration import register_env
 
+from rvt2cli.record.motions import heading, lower_and_slide, pick_up_tool, solver, tcp_for
 from rvt2cli.record.rlbench18.base import VariationEnv
-from rvt2cli.record.rlbench18.handheld import heading, lower_and_slide, pick_up, tcp_for
 
 SIZES = ("tall", "short")
 WALL_HEIGHTS = {"tall": 0.09, "short": 0.03}  # m: the dustpans' walls
@@ -114,14 +114,13 @@ ABOVE_TABLE_M = 0.003     # the head's underside slides this far above the table
 def expert(env, seed=None):
     """Grasp the broom's handle near its end, lift it, lower its head behind the dirt, facing the named
     dustpan, and sweep straight into it. Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     broom = scene.broom.pose.sp
     handle_end = broom * sapien.Pose([-HEAD_HALF[0] - 2 * HANDLE_HALF[0] + GRIP_FROM_END_M, 0, 0])
-    if not pick_up(planner, scene, scene.broom, handle_end.p):
+    if not pick_up_tool(planner, scene, scene.broom, handle_end.p):
         return -1
 
     pan = scene.dustpans[SIZES[scene.variation]].pose.sp

@@ -109,11 +109,11 @@ def _quickest(planner, poses):
 def expert(env, seed=None):
     """Grasp the named handle's lever over its hinge from above, turn it a quarter turn (whichever way the
     wrist turns it quicker), let go and back off upwards. Returns -1 when a motion cannot be planned."""
-    from rvt2cli.record.experts import _solver
+    from rvt2cli.record.motions import solver
 
     env.reset(seed=seed)
     scene = env.unwrapped
-    planner = _solver(env, speed=0.9)
+    planner = solver(env, speed=0.9)
     lever = scene.lever_pose(SIDES[scene.variation])
     across = lever.to_transformation_matrix()[:3, 0]  # the lever runs along its y: the fingers close along its x
     grasps = [scene.agent.build_grasp_pose(np.array([0.0, 0.0, -1.0]), closing, lever.p) for closing in (across, -across)]
