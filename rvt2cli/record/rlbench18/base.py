@@ -75,9 +75,12 @@ class VariationEnv(BaseEnv):
         for contact in self.scene.px.get_contacts():
             first, second = (body.entity for body in contact.bodies)
             if first in finger and second in index:
-                impulses[finger[first], index[second]] += np.sum([p.impulse for p in contact.points], axis=0)
-            elif second in finger and first in index:
-                impulses[finger[second], index[first]] -= np.sum([p.impulse for p in contact.points], axis=0)
+                on, by, sign = finger[first], index[second], 1.0
+            elif second in finger and first in index:   # the pair the other way round: ManiSkill negates its impulse
+                on, by, sign = finger[second], index[first], -1.0
+            else:
+                continue
+            impulses[on, by] += sign * np.sum([p.impulse for p in contact.points], axis=0)
         forces = common.to_tensor(impulses) / self.scene.px.timestep   # float32, as is_grasping has them
         strong = [torch.linalg.norm(forces[f], axis=1) >= 0.5 for f in range(2)]
         if not (strong[0] & strong[1]).any():
