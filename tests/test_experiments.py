@@ -9,6 +9,8 @@ import pytest
 
 from benchmarks import experiment as runner
 from rvt2cli.cli import build_parser
+from rvt2cli.cli.train import options_from
+from rvt2cli.train.trainer import model_config
 
 EXPERIMENT_FILES = sorted(runner.EXPERIMENTS.glob("*.toml"))
 
@@ -41,6 +43,7 @@ def test_every_command_parses_with_the_cli(path, gpus, tmp_path):
             assert args.batch_size * gpus == experiment["train"]["batch_size"]
             assert args.steps == experiment["train"]["steps"]
             assert (argv[0] == "torchrun") == (gpus > 1)
+            model_config(options_from(args))  # the options suit the model config (one stage or two)
 
 
 @pytest.mark.parametrize("path", [p for p in EXPERIMENT_FILES if "published" in runner.load(p)], ids=lambda p: p.stem)
