@@ -29,7 +29,7 @@ def measure(paths: list[Path], workers: int) -> dict:
     start = time.perf_counter()
     samples = load_samples(paths, progress=False, workers=workers)
     load = time.perf_counter() - start
-    processes = max(1, min(workers, len(paths) // runtime.FILES_PER_WORKER))  # as the two functions decide
+    processes = runtime.file_workers(workers, len(paths))
     return {"workers": workers, "processes": processes, "files": len(paths), "refused": len(refused), "extract_s": extract, "load_s": load,
             "extract_s_per_file": extract / len(paths), "load_s_per_file": load / len(paths), "samples": len(samples),
             "points_per_sample": sum(len(x) for x in samples.xyz) / max(1, len(samples))}

@@ -3,6 +3,7 @@ episode draws from, and worker processes that end with the process that started 
 
 import contextlib
 import ctypes
+import itertools
 import multiprocessing
 import os
 import random
@@ -166,10 +167,10 @@ def usable_cores() -> int:
 def worker_pool(workers: int, initializer=None, initargs=()):
     """A pool of `workers` processes (the simulators of record and eval, the readers of extract-keyframes
     and train) that share the machine instead of each sizing its thread pools to all of it: numerical
-    libraries run one thread per process, and lavapipe renders with cores // workers. On a 32-core machine 30 workers otherwise start about 70 threads each,
-    and spend their time switching between them. The limits are read when a library starts, which in a
-    spawned process is before any initializer runs, so they travel in the environment the processes are
-    started with; variables you set yourself are kept."""
+    libraries run one thread per process, and lavapipe renders with cores // workers. On a 32-core machine
+    30 workers otherwise start about 70 threads each, and spend their time switching between them. The
+    limits are read when a library starts, which in a spawned process is before any initializer runs, so
+    they travel in the environment the processes are started with; variables you set yourself are kept."""
     from concurrent.futures import ProcessPoolExecutor
 
     limits = {name: "1" for name in _THREAD_VARIABLES}
@@ -186,6 +187,24 @@ def worker_pool(workers: int, initializer=None, initargs=()):
         for name, value in saved.items():
             if value is None:
                 os.environ.pop(name, None)
+
+
+def file_workers(workers: int, files: int) -> int:
+    """How many processes `map_over_files` reads `files` files with, given up to `workers`."""
+    return max(1, min(workers, files // FILES_PER_WORKER))
+
+
+def map_over_files(function, paths, *args, workers: int = 1):
+    """`function(path, *args)` for each path, yielded in the order of `paths`: in worker processes
+    (`file_workers` of them) where the files are many enough, else in this process. Files are
+    independent, so the results are the same either way."""
+    processes = file_workers(workers, len(paths))
+    if processes == 1:
+        for path in paths:
+            yield function(path, *args)
+        return
+    with worker_pool(processes) as pool:
+        yield from pool.map(function, paths, *(itertools.repeat(a) for a in args))
 
 
 def _start_worker(initializer, initargs) -> None:

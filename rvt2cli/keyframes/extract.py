@@ -1,7 +1,6 @@
 """`rvt2 extract-keyframes`: find an episode's keyframes and training samples and store them in it."""
 
 from dataclasses import dataclass
-from itertools import repeat
 
 import numpy as np
 
@@ -51,15 +50,9 @@ def extract_file(path, params: KeyframeParams = KeyframeParams(), dry_run: bool 
 
 
 def extract_files(paths, params: KeyframeParams = KeyframeParams(), dry_run: bool = False, workers: int = 1):
-    """(path, Annotation or the UserError that refused the file) for each file, in the order given. Files
-    are independent, so `workers` processes (at most one per runtime.FILES_PER_WORKER files) give the same results."""
-    workers = min(workers, len(paths) // runtime.FILES_PER_WORKER)
-    if workers <= 1:
-        for path in paths:
-            yield path, _extract_or_refusal(path, params, dry_run)
-        return
-    with runtime.worker_pool(workers) as pool:
-        yield from zip(paths, pool.map(_extract_or_refusal, paths, repeat(params), repeat(dry_run)))
+    """(path, Annotation or the UserError that refused the file) for each file, in the order given, read
+    and written by up to `workers` processes (`runtime.map_over_files`)."""
+    return zip(paths, runtime.map_over_files(_extract_or_refusal, paths, params, dry_run, workers=workers))
 
 
 def _extract_or_refusal(path, params: KeyframeParams, dry_run: bool):

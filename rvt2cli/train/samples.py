@@ -4,17 +4,21 @@ A sample is the fused cloud at an observation frame, the proprio state there, th
 the next keyframe after it (position, orientation, gripper, collision flag) as the target.
 """
 
-import contextlib
 from dataclasses import dataclass, field
-from itertools import repeat
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from rvt2cli import runtime
 from rvt2cli.errors import UserError
 from rvt2cli.model.observation import proprio_vector
-from rvt2cli import runtime
+
+
+# SampleSet's columns with one entry per sample; those in TABLE_OF index one of its tables.
+TABLE_OF = {"task_index": "tasks", "instruction_index": "instructions", "episode_index": "episodes"}
+PER_SAMPLE = ("xyz", "rgb", "proprio", "target_position", "target_quaternion", "target_gripper_open",
+              "target_ignore_collisions", "keyframe_start", "keyframe_index", "final_keyframe", *TABLE_OF)
 
 
 @dataclass
@@ -45,12 +49,9 @@ class SampleSet:
 
     def subset(self, indices: list[int]) -> "SampleSet":
         """These samples only (the task, instruction and episode tables are kept whole)."""
-        per_sample = ["xyz", "rgb", "proprio", "target_position", "target_quaternion", "target_gripper_open",
-                      "target_ignore_collisions", "task_index", "instruction_index", "episode_index", "keyframe_start",
-                      "keyframe_index", "final_keyframe"]
         out = SampleSet(tasks=self.tasks, instructions=self.instructions, bounds=self.bounds, rigs=self.rigs,
                         episodes=self.episodes, skipped_empty=self.skipped_empty, skipped_failures=self.skipped_failures)
-        for name in per_sample:
+        for name in PER_SAMPLE:
             column = getattr(self, name)
             setattr(out, name, [column[i] for i in indices])
         return out
@@ -62,14 +63,11 @@ class SampleSet:
 
     def extend(self, other: "SampleSet") -> int:
         """Append another set's samples (one episode's, from `episode_samples`), its tables merged into ours."""
-        per_sample = ["xyz", "rgb", "proprio", "target_position", "target_quaternion", "target_gripper_open",
-                      "target_ignore_collisions", "keyframe_start", "keyframe_index", "final_keyframe"]
-        for name in per_sample:
-            getattr(self, name).extend(getattr(other, name))
-        for column, table, theirs in (("task_index", self.tasks, other.tasks),
-                                      ("instruction_index", self.instructions, other.instructions),
-                                      ("episode_index", self.episodes, other.episodes)):
-            ours = [self._index(table, value) for value in theirs]
+        for name in PER_SAMPLE:
+            if name not in TABLE_OF:
+                getattr(self, name).extend(getattr(other, name))
+        for column, table in TABLE_OF.items():
+            ours = [self._index(getattr(self, table), value) for value in getattr(other, table)]
             getattr(self, column).extend(ours[i] for i in getattr(other, column))
         self.bounds.update(other.bounds)
         self.rigs.update(other.rigs)
@@ -121,8 +119,8 @@ def load_samples(paths: list[Path], include_failures: bool = False, progress: bo
                  keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None,
                  tasks: list[str] | None = None, workers: int = 1) -> SampleSet:
     """Read every episode's samples (of these tasks only, if given), in the order given, with up to
-    `workers` processes (at most one per runtime.FILES_PER_WORKER files; the result is the same). Refuses, in one
-    line, files without keyframes."""
+    `workers` processes (`runtime.map_over_files`; the result is the same). Refuses, in one line, files
+    without keyframes."""
     from rvt2cli.data import topics
     from rvt2cli.data.reader import read_episode_overview
 
@@ -142,15 +140,9 @@ def load_samples(paths: list[Path], include_failures: bool = False, progress: bo
         folder = unannotated[0].parent
         raise UserError(f"{names}: no keyframes; run `rvt2 extract-keyframes {folder}/` first")
     samples = SampleSet()
-    workers = min(workers, len(usable) // runtime.FILES_PER_WORKER)
-    with contextlib.ExitStack() as stack:
-        if workers > 1:
-            pool = stack.enter_context(runtime.worker_pool(workers))
-            parts = pool.map(episode_samples, usable, repeat(keyframe_starts_only), repeat(cameras))
-        else:
-            parts = (episode_samples(path, keyframe_starts_only, cameras) for path in usable)
-        for part in tqdm(parts, total=len(usable), desc="load samples", unit="ep", disable=not progress):
-            samples.extend(part)
+    parts = runtime.map_over_files(episode_samples, usable, keyframe_starts_only, cameras, workers=workers)
+    for part in tqdm(parts, total=len(usable), desc="load samples", unit="ep", disable=not progress):
+        samples.extend(part)
     if len(samples) == 0:
         raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else "")
                         + (f" of the tasks {', '.join(tasks)}" if tasks is not None else ""))
