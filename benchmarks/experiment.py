@@ -1,7 +1,8 @@
 """An experiment file (`experiments/*.toml`) turned into the `rvt2` commands that make its results.
 
 An experiment file is data: the tasks, the demos per task and their seeds, the held-out demos, the
-training options, steps, batch and training seeds, and the evaluation's episodes and seeds. This module
+training options, steps, batch and training seeds, the evaluation's episodes and seeds, and optionally
+the renderer every phase uses (`renderer = "lavapipe"` or "nvidia": RVT2_VULKAN in the commands' environment). This module
 prints those commands (`--print`, the default) or runs them one after the other (`--run`), each phase
 timed into OUT/phases.tsv. The phases, in order:
 
@@ -39,7 +40,7 @@ PHASES = ("record", "heldout", "train", "eval", "offline", "oracle")
 
 # The keys an experiment file may have, per table; anything else is a typo the user should hear about.
 SCHEMA = {
-    "": {"name", "summary", "tasks", "record", "heldout", "train", "eval", "oracle", "published"},
+    "": {"name", "summary", "renderer", "tasks", "record", "heldout", "train", "eval", "oracle", "published"},
     "record": {"demos_per_task", "first_seed", "merge_refinements_mm"},
     "heldout": {"tasks", "demos_per_task", "first_seed"},
     "train": {"config", "seeds", "steps", "batch_size", "options"},
@@ -48,6 +49,7 @@ SCHEMA = {
     "oracle": {"episodes_per_task", "first_seed"},
     "published": {"results", "raw", "machine", "notes"},
 }
+RENDERERS = ("auto", "nvidia", "lavapipe")  # RVT2_VULKAN's choices: every phase renders with the file's
 REQUIRED = {"record": "demos_per_task", "heldout": "demos_per_task", "train": "steps", "eval": "episodes_per_task",
             "oracle": "episodes_per_task"}
 
@@ -100,6 +102,8 @@ def load(path: Path) -> dict:
     if not isinstance(ranges, int) or ranges < 1 or episodes % ranges:
         raise UserError(f"{path}: [eval] ranges = {ranges} does not divide episodes_per_task = {episodes} "
                         "into whole ranges; give a number of ranges that divides it")
+    if experiment.get("renderer", "auto") not in RENDERERS:
+        raise UserError(f"{path}: renderer = {experiment['renderer']!r}; choose one of {', '.join(RENDERERS)}")
     for required in ("name", "tasks", "record", "train", "eval"):
         if required not in experiment:
             raise UserError(f"{path}: no {required!r}; every experiment file gives name, tasks, [record], [train] and [eval]")
@@ -196,16 +200,24 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     return run
 
 
-def execute(run: list[tuple[str, list[str]]], out: Path) -> int:
+def environment(experiment: dict) -> dict[str, str]:
+    """What the commands' environment gains: the Vulkan driver of `renderer`, where the file names one.
+    Demos and evaluations must share a renderer (docs/RESULTS.md, "Renderer"), so the file fixes it."""
+    renderer = experiment.get("renderer", "auto")
+    return {} if renderer == "auto" else {"RVT2_VULKAN": renderer}
+
+
+def execute(run: list[tuple[str, list[str]]], out: Path, extra_environment: dict[str, str] | None = None) -> int:
     """Each command in turn, stopping at the first that fails; each phase's seconds into out/phases.tsv."""
     out.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, **(extra_environment or {})}
     for index, (phase, argv) in enumerate(run):
         if index == 0 or run[index - 1][0] != phase:
             started = time.monotonic()
             print(f"== {phase}", flush=True)
         print("$ " + shlex.join(argv), flush=True)
         try:
-            code = subprocess.run(argv).returncode
+            code = subprocess.run(argv, env=env).returncode
         except FileNotFoundError:
             print(f"experiment: error: {argv[0]}: not found; run `make setup` and `source .venv/bin/activate`, "
                   "or name the command with --rvt2", file=sys.stderr)
@@ -265,7 +277,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"experiment: error: {e}", file=sys.stderr)
         return e.exit_code
     if args.run:
-        return execute(run, out)
+        return execute(run, out, environment(experiment))
+    for name, value in environment(experiment).items():
+        print(f"export {name}={value}")
     phase = None
     for name, command in run:
         if name != phase:

@@ -4,6 +4,7 @@ episode draws from, and worker processes that end with the process that started 
 import contextlib
 import ctypes
 import itertools
+import json
 import multiprocessing
 import os
 import random
@@ -51,11 +52,22 @@ def _nvidia_renders(icd: Path) -> str | None:
     return None
 
 
+def _is_lavapipe(manifest: str) -> bool:
+    """Whether a Vulkan ICD manifest loads Mesa's lavapipe (libvulkan_lvp.so), wherever it is installed."""
+    try:
+        library = json.loads(Path(manifest).read_text())["ICD"]["library_path"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return isinstance(library, str) and Path(library).name.startswith("libvulkan_lvp")
+
+
 def choose_vulkan_driver() -> VulkanDriver:
     """The Vulkan driver SAPIEN should render with: NVIDIA's where it works, else Mesa's lavapipe (CPU).
 
     RVT2_VULKAN=nvidia or lavapipe forces one; VK_ICD_FILENAMES or VK_DRIVER_FILES set by you are used
-    as they are. The choice is probed once per run and inherited by worker processes."""
+    as they are, and count as lavapipe where they name it (a lavapipe installed outside the system's
+    folders: SAPIEN must then be asked for its CPU device). The choice is probed once per run and
+    inherited by worker processes."""
     from rvt2cli.errors import UserError
 
     wanted = os.environ.get(CHOICE_VARIABLE, "auto").strip().lower()
@@ -65,6 +77,8 @@ def choose_vulkan_driver() -> VulkanDriver:
         name, _, icd = os.environ[_CHOSEN].partition(":")
         return VulkanDriver(name, icd or None, "chosen earlier in this run")
     user = os.environ.get("VK_DRIVER_FILES") or os.environ.get("VK_ICD_FILENAMES")
+    if user and wanted in ("auto", "lavapipe") and all(_is_lavapipe(m) for m in user.split(os.pathsep)):
+        return VulkanDriver("lavapipe", user, "VK_ICD_FILENAMES/VK_DRIVER_FILES name Mesa's lavapipe")
     if user and wanted == "auto":
         return VulkanDriver("yours", user, "VK_ICD_FILENAMES/VK_DRIVER_FILES set in the environment")
     problems = []
@@ -164,13 +178,15 @@ def usable_cores() -> int:
 
 
 @contextlib.contextmanager
-def worker_pool(workers: int, initializer=None, initargs=()):
+def worker_pool(workers: int, initializer=None, initargs=(), one_gpu_each: bool = True):
     """A pool of `workers` processes (the simulators of record and eval, the readers of extract-keyframes
     and train) that share the machine instead of each sizing its thread pools to all of it: numerical
     libraries run one thread per process, and lavapipe renders with cores // workers. On a 32-core machine
     30 workers otherwise start about 70 threads each, and spend their time switching between them. The
     limits are read when a library starts, which in a spawned process is before any initializer runs, so
-    they travel in the environment the processes are started with; variables you set yourself are kept."""
+    they travel in the environment the processes are started with; variables you set yourself are kept.
+    With `one_gpu_each`, each worker sees one of the machine's GPUs in turn (see `_start_worker`); pass
+    False where a worker must find a GPU by its number (`--device cuda:1`)."""
     from concurrent.futures import ProcessPoolExecutor
 
     limits = {name: "1" for name in _THREAD_VARIABLES}
@@ -179,9 +195,10 @@ def worker_pool(workers: int, initializer=None, initargs=()):
     for name, value in limits.items():
         os.environ.setdefault(name, value)
     context = multiprocessing.get_context("spawn")  # SAPIEN does not survive fork
+    started = context.Value("i", 0)  # numbers the workers as they start: their places in the pool
     try:
         with ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker,
-                                 initargs=(initializer, initargs)) as pool:
+                                 initargs=(started, visible_gpus() if one_gpu_each else [], initializer, initargs)) as pool:
             yield pool
     finally:
         for name, value in saved.items():
@@ -207,10 +224,33 @@ def map_over_files(function, paths, *args, workers: int = 1):
         yield from pool.map(function, paths, *(itertools.repeat(a) for a in args))
 
 
-def _start_worker(initializer, initargs) -> None:
+_worker_index: int | None = None  # this process's place in its pool (0, 1, ...); None outside a pool
+
+
+def visible_gpus() -> list[str]:
+    """The CUDA devices this process may use, named as CUDA_VISIBLE_DEVICES names them."""
+    if (listed := os.environ.get("CUDA_VISIBLE_DEVICES")) is not None:
+        return [name.strip() for name in listed.split(",") if name.strip()]
+    import torch
+
+    return [str(index) for index in range(torch.cuda.device_count())]
+
+
+def _start_worker(started, gpus, initializer, initargs) -> None:
+    global _worker_index
     end_with_parent()
+    with started.get_lock():
+        _worker_index = started.value
+        started.value += 1
+    # On a machine of several GPUs each worker sees one of them, in turn: an evaluation's workers (each with
+    # its copy of the policy) share every GPU instead of crowding the first, and a worker opens one CUDA
+    # context, not one per GPU (ManiSkill's torch.random.fork_rng opens them all). Set before the worker
+    # first touches CUDA: unpickling the initializer and its arguments imports neither torch nor SAPIEN.
+    if len(gpus) > 1:
+        os.environ["CUDA_VISIBLE_DEVICES"] = gpus[_worker_index % len(gpus)]
     import torch
 
     torch.set_num_threads(1)  # the same arithmetic in every process, whatever the number of workers
     if initializer is not None:
         initializer(*initargs)
+

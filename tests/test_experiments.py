@@ -65,8 +65,8 @@ def test_evaluation_ranges_and_extra_evaluations(tmp_path):
 def test_print_is_the_default_and_names_each_phase(capsys):
     assert runner.main(["rvt2_25demos", "--phase", "train,eval", "--workers", "4"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0] == "# train" and "# eval" in lines
-    train = lines[1]
+    assert lines[:2] == ["export RVT2_VULKAN=nvidia", "# train"] and "# eval" in lines   # the published renderer
+    train = lines[2]
     assert train.startswith("rvt2 train ") and "--task-weights insert_peg=3,plug_charger=3" in train
     assert not Path("data/experiments/rvt2_25demos").exists()  # printing creates nothing
 
@@ -79,6 +79,8 @@ def test_print_is_the_default_and_names_each_phase(capsys):
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nseeds = [0]\n[eval]\nepisodes_per_task = 1\n",
      "[train] has no 'steps'"),
     ("name = 'x'\ntasks = [\n", "not valid TOML"),
+    ("name = 'x'\nrenderer = 'mesa'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\n"
+     "episodes_per_task = 1\n", "renderer = 'mesa'; choose one of auto, nvidia, lavapipe"),
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 100\n"
      "ranges = 3\n", "[eval] ranges = 3 does not divide episodes_per_task = 100"),
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 2\n"
@@ -98,11 +100,11 @@ def test_gpus_must_divide_the_batch(capsys):
 
 
 @pytest.mark.sim
-def test_run_executes_a_phase_and_times_it(tmp_path):
+def test_run_executes_a_phase_and_times_it(tmp_path, capsys):
     """--run on the real simulator: the oracle of one push_cube episode."""
     path = tmp_path / "tiny.toml"
-    path.write_text("name = 'tiny'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n"
-                    "[eval]\nepisodes_per_task = 1\n[oracle]\nepisodes_per_task = 1\nfirst_seed = 10000\n")
+    path.write_text("name = 'tiny'\nrenderer = 'lavapipe'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n"
+                    "[train]\nsteps = 1\n[eval]\nepisodes_per_task = 1\n[oracle]\nepisodes_per_task = 1\nfirst_seed = 10000\n")
     out = tmp_path / "out"
     code = runner.main([str(path), "--run", "--phase", "oracle", "--workers", "1", "--out", str(out),
                         "--rvt2", f"{sys.executable} -m rvt2cli"])
@@ -110,3 +112,6 @@ def test_run_executes_a_phase_and_times_it(tmp_path):
     report = json.loads((out / "oracle" / "eval.json").read_text())
     assert report["episodes_per_task"] == 1 and report["seed"] == 10000
     assert [line.split("\t")[0] for line in (out / "phases.tsv").read_text().splitlines()] == ["oracle"]
+    capsys.readouterr()
+    assert runner.main([str(path), "--phase", "oracle"]) == 0   # printed: the renderer first
+    assert capsys.readouterr().out.startswith("export RVT2_VULKAN=lavapipe\n# oracle\n")

@@ -88,6 +88,26 @@ def test_workers_share_the_machine():
     assert {name: os.environ.get(name) for name in before} == before   # the limits were the workers' only
 
 
+def _place_and_gpus():
+    import time
+
+    from rvt2cli import runtime
+
+    time.sleep(1)  # busy, so that the pool starts its second worker for the second job
+    return runtime._worker_index, os.environ.get("CUDA_VISIBLE_DEVICES")
+
+
+def test_workers_know_their_place_and_see_one_gpu_each():
+    from rvt2cli.runtime import visible_gpus, worker_pool
+
+    gpus = visible_gpus()
+    with worker_pool(2) as pool:
+        answers = sorted(f.result() for f in [pool.submit(_place_and_gpus) for _ in range(2)])
+    assert [place for place, _ in answers] == [0, 1]
+    for place, seen in answers:   # one GPU each where there are several; else what this process sees
+        assert seen == (gpus[place % len(gpus)] if len(gpus) > 1 else os.environ.get("CUDA_VISIBLE_DEVICES"))
+
+
 def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
     # seed 2 is one the scripted expert solves (it fails about half of all seeds)
     summary = record("insert_peg", 1, tmp_path, seed=2, options=RecordOptions(cameras=("front",), image_size=32))
@@ -286,3 +306,54 @@ def test_killed_record_leaves_no_worker_behind(tmp_path):
     assert not [pid for pid in workers if _is_worker(pid)], "workers outlived rvt2 record"
     time.sleep(1)
     assert sorted(p.name for p in out.glob("[!.]*")) == visible  # no episode moved in after the kill
+
+
+def test_a_lavapipe_installed_elsewhere_renders(tmp_path):
+    """A lavapipe outside the system's folders (as the offline GPU kit carries it), named by VK_DRIVER_FILES:
+    rvt2 recognises it, asks SAPIEN for its CPU device, and the cameras render through it."""
+    import json
+    import subprocess
+    import sys
+
+    from rvt2cli.runtime import LAVAPIPE_ICD
+
+    if not LAVAPIPE_ICD.is_file():
+        pytest.skip("no system lavapipe to relocate")
+    relocated = json.loads(LAVAPIPE_ICD.read_text())
+    system_library = relocated["ICD"]["library_path"]
+    found = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True).stdout
+    path = next(line.split("=>")[-1].strip() for line in found.splitlines() if Path(system_library).name in line)
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "lib" / "libvulkan_lvp.so").symlink_to(path)
+    manifest = tmp_path / "lvp_icd.json"
+    relocated["ICD"]["library_path"] = str(tmp_path / "lib" / "libvulkan_lvp.so")
+    manifest.write_text(json.dumps(relocated))
+    code = ("from rvt2cli.record.scene import make_env, capture_cameras\n"
+            "from rvt2cli.runtime import use_vulkan_driver\n"
+            "from rvt2cli.tasks import get_task\n"
+            "driver = use_vulkan_driver()\n"
+            "env = make_env(get_task('push_cube'), ('front',), 32)\n"
+            "env.reset(seed=0)\n"
+            "frame = capture_cameras(env)['front']\n"
+            "print(driver.name, driver.icd, frame.rgb.shape, int(frame.rgb.max()))\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("VK_", "RVT2_VULKAN"))}
+    run = subprocess.run([sys.executable, "-c", code], env={**env, "VK_DRIVER_FILES": str(manifest)},
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    name, icd, *shape, brightest = run.stdout.split()
+    assert (name, icd) == ("lavapipe", str(manifest))
+    assert "".join(shape) == "(32,32,3)" and int(brightest) > 0
+
+
+def test_vulkan_manifests_that_are_not_lavapipe_stay_yours(tmp_path, monkeypatch):
+    from rvt2cli.runtime import choose_vulkan_driver
+
+    manifest = tmp_path / "other_icd.json"
+    manifest.write_text('{"file_format_version": "1.0.0", "ICD": {"library_path": "libvulkan_radeon.so"}}')
+    for name in ("RVT2_VULKAN", "RVT2_VULKAN_CHOSEN", "VK_ICD_FILENAMES"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("VK_DRIVER_FILES", str(manifest))
+    assert choose_vulkan_driver().name == "yours"
+    (tmp_path / "broken_icd.json").write_text("{not json")
+    monkeypatch.setenv("VK_DRIVER_FILES", str(tmp_path / "broken_icd.json"))
+    assert choose_vulkan_driver().name == "yours"

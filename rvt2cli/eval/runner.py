@@ -245,7 +245,8 @@ def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
         finally:
             torch.set_num_threads(threads)
         return
-    with worker_pool(opts.workers, _init, (opts, demos)) as pool:
+    # a worker may take whichever GPU it is given unless the policy's device names one ("cuda:1")
+    with worker_pool(opts.workers, _init, (opts, demos), one_gpu_each=not opts.device.startswith("cuda:")) as pool:
         pending = {pool.submit(_run, job): job for job in jobs}
         while pending:
             completed, _ = wait(pending, return_when=FIRST_COMPLETED)

@@ -3,7 +3,7 @@
 # carried in per transfer, at most 10 minutes per command, /tmp kept between commands while the machine
 # stays up). On a GPU workstation with rvt2 installed, run `python -m benchmarks.experiment` directly.
 #
-# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (56 MiB each) + site.sha256
+# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (48 MiB each) + site.sha256
 # Offline host, one command per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders);
 # K=scripts/offline-gpu-host, E=experiments/rvt2_25demos.toml:
 #   bash $K/gpu_onebox.sh stash                         # keep the carried parts in /tmp/w
@@ -55,6 +55,9 @@ export PYTHONWARNINGS=${PYTHONWARNINGS:-ignore::SyntaxWarning}
 export LD_LIBRARY_PATH=${LD_LIBRARY_PATH:-}:/usr/local/nvidia/lib64:/usr/local/nvidia/lib
 export PYTORCH_CUDA_ALLOC_CONF=${PYTORCH_CUDA_ALLOC_CONF:-expandable_segments:True}  # two trainings share one GPU
 export RVT2_VULKAN=${RVT2_VULKAN:-nvidia}   # the point of this machine: say so at once if its GPU cannot render
+# the carried lavapipe's libraries (pack_lavapipe.sh; only those this host lacks): RVT2_VULKAN=lavapipe, or an
+# experiment file's `renderer = "lavapipe"`, renders on the CPU with it once setup has unpacked it
+export LD_LIBRARY_PATH=$LD_LIBRARY_PATH:$SITE/lavapipe/lib
 RVT2=(python3 -m rvt2cli)
 # run from this source tree: the package finds tasks/ and schemas/ where an install would put them
 # (each command may get a fresh copy of the tree, so every command links them)
@@ -69,7 +72,7 @@ while [ $# -gt 0 ]; do
   shift
   case $step in
   stash)
-    cp .gpu/site.part.* .gpu/site.sha256 "$W/" 2>/dev/null || true
+    cp .gpu/site.part.* .gpu/site.sha256 .gpu/lavapipe.tar.xz "$W/" 2>/dev/null || true
     # a run's weight pieces (`weights` on another machine, then `tar -xf meta.tar`), carried as $PIECES*/
     for d in "$PIECES"*/; do
       if [ -d "$d" ]; then mkdir -p "$WEIGHTS" && cp "$d"* "$WEIGHTS/"; fi
@@ -89,6 +92,22 @@ while [ $# -gt 0 ]; do
     if [ -d .gl ]; then  # Vulkan and GL loaders (apt-get download, carried): the image may have none
       for f in .gl/*.deb; do dpkg -x "$f" /; done
       ldconfig
+    fi
+    if [ -f "$W/lavapipe.tar.xz" ] && [ ! -f "$SITE/lavapipe/lvp_icd.json" ]; then
+      mkdir -p "$SITE/lavapipe" && tar -xJf "$W/lavapipe.tar.xz" -C "$SITE/lavapipe"
+      # only the libraries this host lacks: its own copies (newer) must not be shadowed
+      for lib in "$SITE"/lavapipe/lib/*.so.*; do
+        if ldconfig -p | grep -q "^[[:space:]]$(basename "$lib") "; then rm "$lib"; fi
+      done
+      # its manifest where rvt2 looks for lavapipe, the library named by its path here
+      mkdir -p /usr/share/vulkan/icd.d
+      python3 - "$SITE/lavapipe" /usr/share/vulkan/icd.d/lvp_icd.json <<'PY'
+import json, sys
+icd = json.load(open(f"{sys.argv[1]}/lvp_icd.json"))
+icd["ICD"]["library_path"] = f"{sys.argv[1]}/lib/libvulkan_lvp.so"
+json.dump(icd, open(sys.argv[2], "w"))
+PY
+      echo "lavapipe: $(ls "$SITE/lavapipe/lib" | wc -l) libraries kept in $SITE/lavapipe/lib"
     fi
     # kept in $W for `results` ($OUT is emptied before every command)
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$W/gpu.txt"
