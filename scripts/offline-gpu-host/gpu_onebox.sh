@@ -96,8 +96,9 @@ while [ $# -gt 0 ]; do
     if [ -f "$W/lavapipe.tar.xz" ] && [ ! -f "$SITE/lavapipe/lvp_icd.json" ]; then
       mkdir -p "$SITE/lavapipe" && tar -xJf "$W/lavapipe.tar.xz" -C "$SITE/lavapipe"
       # only the libraries this host lacks: its own copies (newer) must not be shadowed
+      known=$(ldconfig -p)
       for lib in "$SITE"/lavapipe/lib/*.so.*; do
-        if ldconfig -p | grep -q "^[[:space:]]$(basename "$lib") "; then rm "$lib"; fi
+        if grep -q "^[[:space:]]$(basename "$lib") " <<< "$known"; then rm "$lib"; fi
       done
       # its manifest where rvt2 looks for lavapipe, the library named by its path here
       mkdir -p /usr/share/vulkan/icd.d
