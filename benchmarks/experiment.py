@@ -6,7 +6,8 @@ the renderer every phase uses (`renderer = "lavapipe"` or "nvidia": RVT2_VULKAN 
 prints those commands (`--print`, the default) or runs them one after the other (`--run`), each phase
 timed into OUT/phases.tsv. The phases, in order:
 
-    record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`)
+    record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`); with
+              `hold_out_variations = true`, none of a task's held-out variations (`rvt2 record --hold-out-variations`)
     heldout   demos on seeds training never sees, scored offline
     train     one run per training seed (torchrun when --gpus > 1, the global batch kept)
     eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted):
@@ -41,7 +42,7 @@ PHASES = ("record", "heldout", "train", "eval", "offline", "oracle")
 # The keys an experiment file may have, per table; anything else is a typo the user should hear about.
 SCHEMA = {
     "": {"name", "summary", "renderer", "tasks", "record", "heldout", "train", "eval", "oracle", "published"},
-    "record": {"demos_per_task", "first_seed", "merge_refinements_mm"},
+    "record": {"demos_per_task", "first_seed", "merge_refinements_mm", "hold_out_variations"},
     "heldout": {"tasks", "demos_per_task", "first_seed"},
     "train": {"config", "seeds", "steps", "batch_size", "options"},
     "eval": {"episodes_per_task", "first_seed", "options", "ranges", "extra"},
@@ -102,6 +103,8 @@ def load(path: Path) -> dict:
     if not isinstance(ranges, int) or ranges < 1 or episodes % ranges:
         raise UserError(f"{path}: [eval] ranges = {ranges} does not divide episodes_per_task = {episodes} "
                         "into whole ranges; give a number of ranges that divides it")
+    if not isinstance(experiment.get("record", {}).get("hold_out_variations", False), bool):
+        raise UserError(f"{path}: [record] hold_out_variations takes true or false")
     if experiment.get("renderer", "auto") not in RENDERERS:
         raise UserError(f"{path}: renderer = {experiment['renderer']!r}; choose one of {', '.join(RENDERERS)}")
     for required in ("name", "tasks", "record", "train", "eval"):
@@ -160,14 +163,16 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     launch = rvt2 if settings.gpus == 1 else [*settings.torchrun, "--standalone", "--nproc-per-node", str(settings.gpus), "-m", "rvt2cli"]
     run = []
 
-    def demos(phase, folder, tasks, episodes, first_seed):  # one command: its workers serve every task
+    def demos(phase, folder, tasks, episodes, first_seed, extra=()):  # one command: its workers serve every task
         run.append((phase, rvt2 + ["record", "--task", ",".join(tasks), "--episodes", str(episodes), "--seed", str(first_seed),
-                                   "--workers", workers, "--out", str(out / folder), "--no-progress"]))
+                                   "--workers", workers, "--out", str(out / folder), "--no-progress", *extra]))
         run.append((phase, rvt2 + ["extract-keyframes", str(out / folder)] + merge))
 
     for phase in phases:
         if phase == "record":
-            demos(phase, "demos", experiment["tasks"], record["demos_per_task"], record.get("first_seed", 0))
+            # the training demos only: held-out demos are scored offline, on every variation
+            demos(phase, "demos", experiment["tasks"], record["demos_per_task"], record.get("first_seed", 0),
+                  ["--hold-out-variations"] if record.get("hold_out_variations") else [])
         elif phase == "heldout" and heldout:
             demos(phase, "heldout", heldout.get("tasks", experiment["tasks"]), heldout["demos_per_task"],
                   heldout.get("first_seed", 30000))

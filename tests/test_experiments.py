@@ -62,6 +62,16 @@ def test_evaluation_ranges_and_extra_evaluations(tmp_path):
         (10000, 50, "seed0_paraphrases", True)]
 
 
+def test_the_unseen_split_leaves_held_out_variations_out_of_the_training_demos(tmp_path):
+    run = runner.commands(runner.load(runner.resolve("rvt2_18_unseen")), runner.Settings(out=tmp_path, workers=2))
+    record = [argv for phase, argv in run if phase == "record" and argv[1] == "record"]
+    assert len(record) == 1 and record[0][-1] == "--hold-out-variations"
+    evals = [argv for phase, argv in run if phase == "eval"]
+    assert [argv[argv.index("--variations") + 1] for argv in evals] == ["seen", "held-out"]
+    assert not any("--hold-out-variations" in argv for argv in runner.commands(
+        runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=2)))
+
+
 def test_print_is_the_default_and_names_each_phase(capsys):
     assert runner.main(["rvt2_25demos", "--phase", "train,eval", "--workers", "4"]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -79,6 +89,8 @@ def test_print_is_the_default_and_names_each_phase(capsys):
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nseeds = [0]\n[eval]\nepisodes_per_task = 1\n",
      "[train] has no 'steps'"),
     ("name = 'x'\ntasks = [\n", "not valid TOML"),
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\nhold_out_variations = 'yes'\n[train]\nsteps = 1\n"
+     "[eval]\nepisodes_per_task = 1\n", "[record] hold_out_variations takes true or false"),
     ("name = 'x'\nrenderer = 'mesa'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\n"
      "episodes_per_task = 1\n", "renderer = 'mesa'; choose one of auto, nvidia, lavapipe"),
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 100\n"
