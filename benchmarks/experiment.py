@@ -2,9 +2,9 @@
 
 An experiment file is data: the tasks, the demos per task and their seeds, the held-out demos, the
 training options, steps, batch and training seeds, the evaluation's episodes and seeds, and optionally
-the renderer every phase uses (`renderer = "lavapipe"` or "nvidia": RVT2_VULKAN in the commands' environment). This module
-prints those commands (`--print`, the default) or runs them one after the other (`--run`), each phase
-timed into OUT/phases.tsv. The phases, in order:
+the renderer every phase uses (`renderer = "lavapipe"` or "nvidia": RVT2_VULKAN in the commands'
+environment). This module prints those commands (`--print`, the default) or runs them one after the
+other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
 
     record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`); with
               `hold_out_variations = true`, none of a task's held-out variations (`rvt2 record --hold-out-variations`)
