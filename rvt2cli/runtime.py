@@ -178,15 +178,16 @@ def usable_cores() -> int:
 
 
 @contextlib.contextmanager
-def worker_pool(workers: int, initializer=None, initargs=(), one_gpu_each: bool = True):
+def worker_pool(workers: int, initializer=None, initargs=(), gpus: str = "one"):
     """A pool of `workers` processes (the simulators of record and eval, the readers of extract-keyframes
     and train) that share the machine instead of each sizing its thread pools to all of it: numerical
     libraries run one thread per process, and lavapipe renders with cores // workers. On a 32-core machine
     30 workers otherwise start about 70 threads each, and spend their time switching between them. The
     limits are read when a library starts, which in a spawned process is before any initializer runs, so
     they travel in the environment the processes are started with; variables you set yourself are kept.
-    With `one_gpu_each`, each worker sees one of the machine's GPUs in turn (see `_start_worker`); pass
-    False where a worker must find a GPU by its number (`--device cuda:1`)."""
+    `gpus`: "one", each worker sees one of the machine's GPUs in turn (see `_start_worker`); "all", where a
+    worker must find a GPU by its number (`--device cuda:1`); "none", where workers need no GPU (readers,
+    simulators rendering with lavapipe), so that they open no CUDA context at all."""
     from concurrent.futures import ProcessPoolExecutor
 
     limits = {name: "1" for name in _THREAD_VARIABLES}
@@ -198,7 +199,7 @@ def worker_pool(workers: int, initializer=None, initargs=(), one_gpu_each: bool 
     started = context.Value("i", 0)  # numbers the workers as they start: their places in the pool
     try:
         with ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker,
-                                 initargs=(started, visible_gpus() if one_gpu_each else [], initializer, initargs)) as pool:
+                                 initargs=(started, _worker_gpus(gpus), initializer, initargs)) as pool:
             yield pool
     finally:
         for name, value in saved.items():
@@ -220,7 +221,7 @@ def map_over_files(function, paths, *args, workers: int = 1):
         for path in paths:
             yield function(path, *args)
         return
-    with worker_pool(processes) as pool:
+    with worker_pool(processes, gpus="none") as pool:
         yield from pool.map(function, paths, *(itertools.repeat(a) for a in args))
 
 
@@ -236,6 +237,17 @@ def visible_gpus() -> list[str]:
     return [str(index) for index in range(torch.cuda.device_count())]
 
 
+def _worker_gpus(gpus: str) -> list[str] | None:
+    """What `_start_worker` makes visible: one of these per worker, none ([]), or what this process sees
+    (None: "all", or "one" on a machine of at most one GPU)."""
+    if gpus not in ("one", "all", "none"):
+        raise ValueError(f"gpus={gpus!r}: one, all or none")
+    if gpus == "none":
+        return []
+    listed = visible_gpus() if gpus == "one" else []
+    return listed if len(listed) > 1 else None
+
+
 def _start_worker(started, gpus, initializer, initargs) -> None:
     global _worker_index
     end_with_parent()
@@ -246,7 +258,9 @@ def _start_worker(started, gpus, initializer, initargs) -> None:
     # its copy of the policy) share every GPU instead of crowding the first, and a worker opens one CUDA
     # context, not one per GPU (ManiSkill's torch.random.fork_rng opens them all). Set before the worker
     # first touches CUDA: unpickling the initializer and its arguments imports neither torch nor SAPIEN.
-    if len(gpus) > 1:
+    if gpus == []:
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""
+    elif gpus is not None:
         os.environ["CUDA_VISIBLE_DEVICES"] = gpus[_worker_index % len(gpus)]
     import torch
 

@@ -106,6 +106,10 @@ def test_workers_know_their_place_and_see_one_gpu_each():
     assert [place for place, _ in answers] == [0, 1]
     for place, seen in answers:   # one GPU each where there are several; else what this process sees
         assert seen == (gpus[place % len(gpus)] if len(gpus) > 1 else os.environ.get("CUDA_VISIBLE_DEVICES"))
+    with worker_pool(1, gpus="none") as pool:   # readers, and simulators rendering with lavapipe
+        assert pool.submit(_place_and_gpus).result() == (0, "")
+    with worker_pool(1, gpus="all") as pool:    # a policy on a GPU named by its number
+        assert pool.submit(_place_and_gpus).result() == (0, os.environ.get("CUDA_VISIBLE_DEVICES"))
 
 
 def test_extract_keyframes_on_recorded_insert_peg(tmp_path):

@@ -21,7 +21,7 @@ from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
 from rvt2cli.eval.search import InsertionSearch
-from rvt2cli.runtime import worker_pool
+from rvt2cli.runtime import use_vulkan_driver, worker_pool
 from rvt2cli.tasks import episode_variation, get_task
 
 
@@ -245,8 +245,9 @@ def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
         finally:
             torch.set_num_threads(threads)
         return
+    use_vulkan_driver()  # chosen (and probed) once here; the workers inherit the choice
     # a worker may take whichever GPU it is given unless the policy's device names one ("cuda:1")
-    with worker_pool(opts.workers, _init, (opts, demos), one_gpu_each=not opts.device.startswith("cuda:")) as pool:
+    with worker_pool(opts.workers, _init, (opts, demos), gpus="all" if opts.device.startswith("cuda:") else "one") as pool:
         pending = {pool.submit(_run, job): job for job in jobs}
         while pending:
             completed, _ = wait(pending, return_when=FIRST_COMPLETED)

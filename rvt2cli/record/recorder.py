@@ -22,7 +22,7 @@ from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.record.expert import ExpertRun, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
 from rvt2cli.robot import RobotFacts
-from rvt2cli.runtime import worker_pool
+from rvt2cli.runtime import use_vulkan_driver, worker_pool
 from rvt2cli.tasks import Task, episode_variation, get_task
 
 
@@ -245,7 +245,10 @@ def _record_parallel(tasks, summaries, out_dir, seed, workers, options, max_atte
                     return name, queue.next_seed - 1
         return None
 
-    with worker_pool(workers, _init_worker, (str(out_dir), options)) as pool:
+    # The renderer is chosen (and probed) once here and inherited by the workers. Rendering with lavapipe,
+    # they need no GPU: hidden from them, they open no CUDA context (ManiSkill's resets would open one).
+    driver = use_vulkan_driver()
+    with worker_pool(workers, _init_worker, (str(out_dir), options), gpus="none" if driver.name == "lavapipe" else "one") as pool:
         pending = {}
         while True:
             while len(pending) < workers and (job := next_job()) is not None:
