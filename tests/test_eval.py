@@ -1,6 +1,7 @@
 """`rvt2 eval`: the executor reaches recorded keyframes (oracle), and a trained checkpoint runs end to end."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -70,6 +71,31 @@ def test_untrained_task_is_warned_in_one_line_and_noted(tiny_checkpoint, tmp_pat
     assert len(warnings) == 1 and "push_cube" in warnings[0] and "training set" in warnings[0], r.stderr
     assert json.loads((tmp_path / "eval.json").read_text())["untrained_tasks"] == ["push_cube"]
     assert "generalisation test" in (tmp_path / "eval.md").read_text()
+
+
+def test_a_checkpoint_knows_its_demos_renderer_and_eval_warns_under_another(tiny_checkpoint, tmp_path, cli):
+    import shutil
+
+    from rvt2cli.runtime import use_vulkan_driver
+
+    run_dir, _ = tiny_checkpoint
+    here = use_vulkan_driver().name
+    configs = sorted(Path(run_dir).rglob("config.json"))
+    rigs = json.loads(configs[0].read_text())["rigs"]
+    assert {rig["renderer"] for rig in rigs.values()} == {here}   # recorded in the demos, kept by training
+    other = "nvidia" if here != "nvidia" else "lavapipe"
+    elsewhere = tmp_path / "run"
+    shutil.copytree(run_dir, elsewhere)
+    for config in elsewhere.rglob("config.json"):
+        data = json.loads(config.read_text())
+        for rig in data["rigs"].values():
+            rig["renderer"] = other
+        config.write_text(json.dumps(data))
+    r = cli("eval", "--checkpoint", elsewhere, "--episodes", "1", "--keyframe-budget", "1", "--out", tmp_path / "ev",
+            "--no-progress")
+    assert r.returncode == 0, r.stderr[-2000:]
+    warnings = [line for line in r.stderr.splitlines() if "warning" in line.lower()]
+    assert len(warnings) == 1 and f"rendered by {other}" in warnings[0] and f"renders with {here}" in warnings[0], r.stderr
 
 
 def test_a_crashed_worker_keeps_the_finished_episodes_and_resume_runs_the_rest(tmp_path):

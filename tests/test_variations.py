@@ -16,6 +16,7 @@ from rvt2cli.eval.taxonomy import failure_reason
 from rvt2cli.record.expert import run_expert
 from rvt2cli.record.recorder import RecordOptions, record
 from rvt2cli.record.scene import make_env, set_variation, sim_state
+from rvt2cli.runtime import use_vulkan_driver
 from rvt2cli.tasks import _parse, all_tasks, episode_variation, get_task, task_sets, tasks_of_set
 
 pytestmark = pytest.mark.sim
@@ -93,7 +94,10 @@ def test_recording_spreads_episodes_over_variations_and_stores_them(slide_demos,
     assert r.returncode == 0, r.stderr
     info = json.loads(r.stdout)[0]
     assert info["variation"] == 2 and info["variation_values"] == {"color": "pink"}
-    assert "variation    2  color=pink" in cli("info", slide_demos / f"{TASK}_0002.mcap").stdout
+    text = cli("info", slide_demos / f"{TASK}_0002.mcap").stdout
+    assert "variation    2  color=pink" in text
+    renderer = use_vulkan_driver().name   # the Vulkan driver that drew the cameras, stored with them
+    assert info["renderer"] == renderer and f"(rendered by {renderer})" in text
 
 
 def test_training_samples_carry_their_own_variations_instruction(slide_demos):

@@ -20,6 +20,7 @@ def summarize(path: str | Path) -> dict:
         "seed": ep.meta.seed,
         "expert": ep.meta.expert,
         "cameras": list(ep.meta.cameras),
+        "renderer": ep.meta.extra.get("renderer"),   # the Vulkan driver that drew them (None: not recorded by rvt2 record)
         "obs_frames": len(ep.meta.obs_frames),
         "keyframes": None if ep.keyframes is None else len(ep.keyframes.keyframes),
         "samples": None if ep.keyframes is None else len(ep.keyframes.samples),
@@ -37,7 +38,7 @@ def format_summary(s: dict) -> str:
         f"  variation    {s['variation']}" + "".join(f"  {k}={v}" for k, v in sorted(s["variation_values"].items())),
         f"  frames       {s['frames']}  ({s['duration_s']:.2f} s), {s['obs_frames']} with observations",
         f"  success      {s['success']}",
-        f"  cameras      {', '.join(s['cameras']) or 'none'}",
+        f"  cameras      {', '.join(s['cameras']) or 'none'}" + (f"  (rendered by {s['renderer']})" if s["renderer"] else ""),
         f"  keyframes    {kf}",
         f"  size         {s['size_bytes'] / 1e6:.2f} MB  (format {s['format_version']})",
         "  channels",

@@ -188,6 +188,13 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
 
         _, ckpt = load_policy(opts.checkpoint)  # refuses missing, foreign or damaged checkpoints before any work
         checkpoint_tasks, checkpoint_path = ckpt.tasks, str(ckpt.path)
+    driver = use_vulkan_driver()  # chosen (and probed) once here; worker processes inherit the choice
+    if opts.checkpoint:
+        trained = sorted({rig["renderer"] for rig in ckpt.info.get("rigs", {}).values() if rig.get("renderer")})
+        if trained and driver.name not in trained:
+            warnings.warn(f"the checkpoint's demos were rendered by {' and '.join(trained)}, this evaluation renders with "
+                          f"{driver.name}: a policy acts differently under another renderer (docs/RESULTS.md, \"Renderer\"); "
+                          f"set RVT2_VULKAN={trained[0]} to evaluate under the demos' renderer")
     demos = _demo_seeds(opts.demos) if opts.demos else {}
     jobs = plan_jobs(opts, checkpoint_tasks, demos, replayed)
     untrained = untrained_tasks(opts, checkpoint_tasks)
@@ -245,7 +252,6 @@ def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
         finally:
             torch.set_num_threads(threads)
         return
-    use_vulkan_driver()  # chosen (and probed) once here; the workers inherit the choice
     # a worker may take whichever GPU it is given unless the policy's device names one ("cuda:1")
     with worker_pool(opts.workers, _init, (opts, demos), gpus="all" if opts.device.startswith("cuda:") else "one") as pool:
         pending = {pool.submit(_run, job): job for job in jobs}

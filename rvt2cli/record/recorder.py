@@ -93,7 +93,8 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
             instruction=instruction, obs_frames=writer.obs_frames,
             versions=software_versions("mani-skill", "sapien", "mplib", "numpy"),
             voxel_size=options.voxel_size, extra={"image_size": int(options.image_size or task.image_size), "status": run.status,
-                                                  "robot": robot.to_json(), "variation": run.variation},
+                                                  "robot": robot.to_json(), "variation": run.variation,
+                                                  "renderer": use_vulkan_driver().name},  # the Vulkan driver that drew the cameras
         )
         return writer.finish(meta)
 
