@@ -244,7 +244,9 @@ def _worker_gpus(gpus: str) -> list[str] | None:
         raise ValueError(f"gpus={gpus!r}: one, all or none")
     if gpus == "none":
         return []
-    listed = visible_gpus() if gpus == "one" else []
+    if gpus == "all":
+        return None
+    listed = visible_gpus()
     return listed if len(listed) > 1 else None
 
 

@@ -188,19 +188,19 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
 
         _, ckpt = load_policy(opts.checkpoint)  # refuses missing, foreign or damaged checkpoints before any work
         checkpoint_tasks, checkpoint_path = ckpt.tasks, str(ckpt.path)
-    driver = use_vulkan_driver()  # chosen (and probed) once here; worker processes inherit the choice
-    if opts.checkpoint:
-        trained = sorted({rig["renderer"] for rig in ckpt.info.get("rigs", {}).values() if rig.get("renderer")})
-        if trained and driver.name not in trained:
-            warnings.warn(f"the checkpoint's demos were rendered by {' and '.join(trained)}, this evaluation renders with "
-                          f"{driver.name}: a policy acts differently under another renderer (docs/RESULTS.md, \"Renderer\"); "
-                          f"set RVT2_VULKAN={trained[0]} to evaluate under the demos' renderer")
     demos = _demo_seeds(opts.demos) if opts.demos else {}
     jobs = plan_jobs(opts, checkpoint_tasks, demos, replayed)
     untrained = untrained_tasks(opts, checkpoint_tasks)
     if untrained:
         warnings.warn(f"task(s) {', '.join(untrained)} not in the checkpoint's training set "
                       f"({', '.join(checkpoint_tasks)}); evaluating anyway (noted in the report)")
+    driver = use_vulkan_driver()  # chosen (and probed) once the inputs are checked; worker processes inherit the choice
+    if opts.checkpoint:
+        trained = sorted({rig["renderer"] for rig in ckpt.info.get("rigs", {}).values() if rig.get("renderer")})
+        if trained and driver.name not in trained:
+            warnings.warn(f"the checkpoint's demos were rendered by {' and '.join(trained)}, this evaluation renders with "
+                          f"{driver.name}: a policy acts differently under another renderer (docs/RESULTS.md, \"Renderer\"); "
+                          f"set RVT2_VULKAN={trained[0]} to evaluate under the demos' renderer")
     out_dir = ensure_folder(Path(opts.out) if opts.out else (Path(opts.checkpoint) / "eval" if opts.checkpoint else Path("eval")))
     journal = Journal(out_dir, opts.plan(checkpoint_path), opts.resume)
     todo = [job for job in jobs if (job.source, job.task, job.seed) not in journal.finished]
