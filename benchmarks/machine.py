@@ -4,6 +4,8 @@ import os
 import platform
 from importlib.metadata import PackageNotFoundError, version
 
+from rvt2cli.runtime import usable_cores
+
 
 def cpu_model() -> str:
     try:
@@ -17,6 +19,9 @@ def cpu_model() -> str:
 
 def describe() -> dict:
     info = {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}
+    usable = usable_cores()
+    if usable != info["cores"]:  # pinned (taskset, a container's CPU set): the cores the benchmark could use
+        info["usable_cores"] = usable
     for package in ("torch", "warp-lang", "mani-skill", "sapien", "rvt2"):
         try:
             info[package] = version(package)

@@ -145,7 +145,61 @@ def test_torchrun_trains_with_two_processes(tiny_dataset, tmp_path):
                         "--val-episodes", "0", "--no-progress"], capture_output=True, text=True, timeout=600, env=env)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "batch 2 x 2" in r.stdout  # two ranks, one log
+    assert r.stdout.count("trained 3 steps") == 1 and r.stdout.count("data: ") == 1, r.stdout
     assert load_checkpoint(out).info["step"] == 3
+
+
+_SHARED_DATA_CHECK = """
+import dataclasses
+import sys
+import torch
+from rvt2cli.train.trainer import TrainOptions, _distributed, load_data, model_config, read_data
+
+rank, world = _distributed()
+opts = TrainOptions(data=[sys.argv[1]], out=sys.argv[2], config="small", max_points=3000, val_episodes=1, progress=False)
+cfg = model_config(opts)
+shared = load_data(opts, cfg, torch.device("cpu"), False, None, lambda *_: None)
+own = read_data(opts, cfg, torch.device("cpu"), False, None, lambda *_: None)
+assert (shared.packed_val is None) == (own.packed_val is None)
+for a, b in ((shared.packed, own.packed), (shared.packed_val, own.packed_val)):
+    for name in [f.name for f in dataclasses.fields(a)] if a is not None else []:
+        value, other = getattr(a, name), getattr(b, name)
+        same = torch.equal(value, other) if torch.is_tensor(value) else (value == other).all() if hasattr(value, "all") else value == other
+        assert same, (rank, name)
+assert shared.selected == own.selected and shared.samples.episodes == own.samples.episodes
+assert shared.instructions.as_dict().keys() == own.instructions.as_dict().keys()
+assert (len(shared.samples.xyz) > 0) == (rank == 0)  # the others keep no clouds of their own
+print(f"rank {rank} of {world}: the same {len(shared.packed)} samples")
+"""
+
+
+def test_several_processes_train_on_the_data_process_0_read(tiny_dataset, tmp_path, cli):
+    """In a several-process run one process reads the episodes; the others receive exactly what reading
+    them gives (packed clouds, targets, split, instructions). Data that cannot be trained on stops every
+    process with the one-line error, instead of leaving the others waiting."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from rvt2cli.record.recorder import RecordOptions, record
+
+    torchrun = Path(sys.executable).parent / "torchrun"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    script = tmp_path / "check.py"
+    script.write_text(_SHARED_DATA_CHECK)
+    r = subprocess.run([str(torchrun), "--nproc-per-node", "2", str(script), str(tiny_dataset), str(tmp_path / "run")],
+                       capture_output=True, text=True, timeout=600, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "rank 0 of 2: the same" in r.stdout and "rank 1 of 2: the same" in r.stdout
+
+    unannotated = tmp_path / "unannotated"
+    record("push_cube", 1, unannotated, options=RecordOptions(cameras=("front",), image_size=32))
+    r = subprocess.run([str(torchrun), "--nproc-per-node", "2", "-m", "rvt2cli", "train", "--data", str(unannotated),
+                        "--out", str(tmp_path / "bad"), "--config", "small", "--no-progress"],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode != 0 and r.stderr.count("no keyframes; run `rvt2 extract-keyframes") == 2, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr.split("no keyframes")[0]
 
 
 def _two_nodes(out, *extra) -> list[list[str]]:

@@ -95,9 +95,13 @@ def options_from(args) -> "TrainOptions":  # noqa: F821 - imported lazily
 
 
 def run(args) -> int:
+    import os
+
     from rvt2cli.train.trainer import describe_terms, train
 
     result = train(options_from(args))
+    if int(os.environ.get("RANK", "0")) != 0:  # one summary for a several-GPU run, from the process that saves
+        return 0
     v = result.last_validation
     print(f"trained {result.steps} steps in {result.seconds:.0f} s; checkpoint: {result.run_dir}/last"
           + (f"; validation: stage-2 error {v['translation_mm_median']:.1f} mm median, {v['rotation_deg_median']:.1f} deg, "

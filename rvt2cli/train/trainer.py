@@ -12,6 +12,7 @@ sampling generator, counters: everything a checkpoint saves), `TrainStep` (rvt2c
 """
 
 import csv
+import datetime
 import json
 import os
 import time
@@ -158,10 +159,9 @@ def load_training_data(data: list[str], include_failures: bool, progress: bool, 
                             f"pack the cache with `rvt2 pack-samples --cameras {','.join(cameras)}`")
         return samples, embeddings
     paths = episode_paths(data)
-    # every process of a several-GPU run reads the episodes: they share this machine's cores
-    workers = max(1, usable_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    # one process reads the episodes, with all the cores (a several-GPU run passes the result on: `load_data`)
     return load_samples(paths, include_failures, progress=progress, keyframe_starts_only=keyframe_starts_only,
-                        cameras=cameras, tasks=tasks, workers=workers), {}
+                        cameras=cameras, tasks=tasks, workers=usable_cores()), {}
 
 
 def split_episodes(samples, val_episodes: int, selected: list[int] | None = None) -> tuple[list[int], list[int]]:
@@ -192,6 +192,71 @@ class TrainingData:
 
 
 def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resume: Checkpoint | None, say) -> TrainingData:
+    """The samples to train on, packed on `device`. In a several-GPU run the first process reads and packs
+    them and sends them to the others, whose copy is the same as reading them would give (packing is
+    seeded): four processes reading 1,800 rvt2-18 episodes each took 4.5 of a 4 x H200 run's 15 minutes."""
+    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        return read_data(opts, cfg, device, progress, resume, say)
+    data, error = None, None
+    if torch.distributed.get_rank() == 0:
+        try:
+            data = read_data(opts, cfg, device, progress, resume, say)
+        except UserError as e:  # the others would otherwise wait for data that never comes
+            error = str(e)
+    return share_data(data, error, device)
+
+
+_PACKED_TENSORS = ("xyz", "rgb", "count", "proprio", "instruction", "lang")  # PackedSamples' fields on the device
+
+
+def share_data(data: TrainingData | None, error: str | None, device) -> TrainingData:
+    """Process 0's `data` (or its error) in every process: the small parts pickled, the packed tensors sent
+    as they are (NCCL between GPUs). Process 0's sample set keeps its clouds, the others' copy has none
+    (only the packed ones are trained on)."""
+    import dataclasses
+
+    dist = torch.distributed
+    rank = dist.get_rank()
+    header = [None]
+    if rank == 0:
+        if error is not None:
+            header = [("error", error)]
+        else:
+            def outline(packed):  # the packed samples without their tensors, and what those tensors are
+                if packed is None:
+                    return None
+                shapes = {name: (tuple(getattr(packed, name).shape), getattr(packed, name).dtype) for name in _PACKED_TENSORS}
+                return dataclasses.replace(packed, **dict.fromkeys(_PACKED_TENSORS)), shapes
+
+            clouds = {"xyz": [], "rgb": []}
+            header = [("data", dataclasses.replace(data, samples=dataclasses.replace(data.samples, **clouds),
+                                                   packed=outline(data.packed), packed_val=outline(data.packed_val)))]
+    dist.broadcast_object_list(header, src=0, device=device if device.type == "cuda" else None)
+    kind, payload = header[0]
+    if kind == "error":
+        raise UserError(payload)
+    if rank == 0:
+        received = data
+    else:
+        received = payload
+
+        def allocate(outlined):
+            if outlined is None:
+                return None
+            packed, shapes = outlined
+            return dataclasses.replace(packed, **{name: torch.empty(shape, dtype=dtype, device=device)
+                                                  for name, (shape, dtype) in shapes.items()})
+
+        received = dataclasses.replace(received, packed=allocate(received.packed), packed_val=allocate(received.packed_val))
+    for packed in (received.packed, received.packed_val):
+        if packed is not None:
+            for name in _PACKED_TENSORS:
+                dist.broadcast(getattr(packed, name), src=0)
+    return received
+
+
+def read_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resume: Checkpoint | None, say) -> TrainingData:
+    """Read, select, split, embed and pack the training samples (`load_data` without the sharing)."""
     samples, known = load_training_data(opts.data, opts.include_failures, progress, opts.keyframe_starts_only, opts.cameras,
                                         opts.task_set)
     selected = select_samples(samples, opts.episodes_per_task, opts.keyframe_starts_only)
@@ -250,11 +315,16 @@ def count_flops(policy: RVT2Policy, packed, device) -> float | None:
 
 # --- the state a checkpoint keeps -------------------------------------------------------------------------
 
+DISTRIBUTED_TIMEOUT = datetime.timedelta(hours=1)
+
+
 def _distributed() -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not torch.distributed.is_initialized():
         backend = "nccl" if torch.cuda.is_available() else "gloo"
-        torch.distributed.init_process_group(backend)
+        # the other processes wait in a collective while the first reads the episodes (`load_data`), which can
+        # take longer than torch's 10-minute default on a large dataset
+        torch.distributed.init_process_group(backend, timeout=DISTRIBUTED_TIMEOUT)
     return (torch.distributed.get_rank() if world > 1 else 0), world
 
 

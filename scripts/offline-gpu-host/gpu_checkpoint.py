@@ -2,7 +2,8 @@
 
 Such a host returns at most 64 MiB per transfer, in files of at most 16 MiB. On the GPU machine:
 
-    python3 scripts/offline-gpu-host/gpu_checkpoint.py shrink RUN_DIR OUT_DIR     # config + embeddings + fp16 weights in 15 MiB pieces
+    python3 scripts/offline-gpu-host/gpu_checkpoint.py shrink RUN_DIR OUT_DIR     # config, and fp16 weights and the
+                                                                                  # instruction embeddings in 15 MiB pieces
 
 and on the machine that receives them, once every piece has come back into one folder:
 
@@ -30,39 +31,59 @@ from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, WEIGHTS, resolve  # n
 PIECE = 15 * 2**20
 
 
+def _split(blob: bytes, stem: str, out: Path) -> list[str]:
+    """`blob` as files STEM.partNNN of at most PIECE bytes in `out`; their names, in order."""
+    names = []
+    for i in range(0, len(blob), PIECE):
+        names.append(f"{stem}.part{i // PIECE:03d}")
+        (out / names[-1]).write_bytes(blob[i:i + PIECE])
+    return names
+
+
+def _join(pieces_dir: Path, names: list[str], sha256: str, what: str) -> bytes:
+    missing = [p for p in names if not (pieces_dir / p).is_file()]
+    if missing:
+        sys.exit(f"{pieces_dir}: missing {', '.join(missing)}")
+    blob = b"".join((pieces_dir / p).read_bytes() for p in names)
+    if hashlib.sha256(blob).hexdigest() != sha256:
+        sys.exit(f"{pieces_dir}: the pieces do not add up to the {what} that were sent (sha256 differs)")
+    return blob
+
+
 def shrink(run: Path, out: Path) -> None:
     ckpt = resolve(run)
     out.mkdir(parents=True, exist_ok=True)
     weights = load_file(str(ckpt / WEIGHTS))
     blob = save({k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in weights.items()})
-    pieces = []
-    for i in range(0, len(blob), PIECE):
-        name = f"weights.part{i // PIECE:03d}"
-        (out / name).write_bytes(blob[i:i + PIECE])
-        pieces.append(name)
+    pieces = _split(blob, "weights", out)
+    # the instruction embeddings (every phrasing of every variation: 68 MB for rvt2-18) travel in pieces too
+    instructions = (ckpt / INSTRUCTIONS).read_bytes()
+    instruction_pieces = _split(instructions, "instructions", out)
     config = json.loads((ckpt / CONFIG).read_text())
     config["transfer"] = {"weights_dtype": "float16", "note": "weights rounded to float16 to leave the GPU machine"}
     (out / CONFIG).write_text(json.dumps(config, indent=2))
-    shutil.copy(ckpt / INSTRUCTIONS, out / INSTRUCTIONS)
-    manifest = {"step": config["step"], "pieces": pieces, "sha256": hashlib.sha256(blob).hexdigest()}
+    manifest = {"step": config["step"], "pieces": pieces, "sha256": hashlib.sha256(blob).hexdigest(),
+                "instruction_pieces": instruction_pieces,
+                "instructions_sha256": hashlib.sha256(instructions).hexdigest()}
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2))
-    print(f"{ckpt}: {len(pieces)} pieces, {len(blob) / 2**20:.1f} MiB")
+    print(f"{ckpt}: {len(pieces) + len(instruction_pieces)} pieces, "
+          f"{(len(blob) + len(instructions)) / 2**20:.1f} MiB")
 
 
 def restore(pieces_dir: Path, run: Path) -> None:
     manifest = json.loads((pieces_dir / "manifest.json").read_text())
-    missing = [p for p in manifest["pieces"] if not (pieces_dir / p).is_file()]
-    if missing:
-        sys.exit(f"{pieces_dir}: missing {', '.join(missing)}")
-    blob = b"".join((pieces_dir / p).read_bytes() for p in manifest["pieces"])
-    if hashlib.sha256(blob).hexdigest() != manifest["sha256"]:
-        sys.exit(f"{pieces_dir}: the pieces do not add up to the weights that were sent (sha256 differs)")
+    blob = _join(pieces_dir, manifest["pieces"], manifest["sha256"], "weights")
+    if "instruction_pieces" in manifest:
+        instructions = _join(pieces_dir, manifest["instruction_pieces"], manifest["instructions_sha256"],
+                             "instruction embeddings")
+    else:  # sent whole by an earlier version of this script
+        instructions = (pieces_dir / INSTRUCTIONS).read_bytes()
     name = f"step_{manifest['step']:07d}"
     weights = {k: (v.float() if v.is_floating_point() else v).contiguous() for k, v in load(blob).items()}
     with atomic_folder(run / "checkpoints" / name, replace=True) as final:  # readable by all, as rvt2's own
         save_file(weights, str(final / WEIGHTS))
         shutil.copy(pieces_dir / CONFIG, final / CONFIG)
-        shutil.copy(pieces_dir / INSTRUCTIONS, final / INSTRUCTIONS)
+        (final / INSTRUCTIONS).write_bytes(instructions)
     with atomic_open(run / "last", "w") as f:
         f.write(f"checkpoints/{name}\n")
     print(f"{run}: checkpoint {name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights)")

@@ -275,16 +275,16 @@ PY
     cp "$OUT/results.tgz" "$W/" 2>/dev/null || true
     ls -l "$OUT"
     ;;
-  weights)  # weight pieces FIRST..FIRST+COUNT-1 (float16, 15 MiB each; at most 7 per transfer) and, with 0, the config
+  weights)  # pieces FIRST..FIRST+COUNT-1 (15 MiB each, at most 4 per transfer: the float16 weights, then the
+            # instruction embeddings) and, with 0, the config and manifest (meta.tar)
     first=$1 count=$2
     shift 2
     [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$RUN_DIR" "$W/export/$RUN"
     mkdir -p "$OUT/$RUN"
-    for i in $(seq "$first" $((first + count - 1))); do
-      piece=$(printf "%s/export/%s/weights.part%03d" "$W" "$RUN" "$i")
-      [ -f "$piece" ] && cp "$piece" "$OUT/$RUN/"
-    done
-    if [ "$first" = 0 ]; then tar -cf "$OUT/$RUN/meta.tar" -C "$W/export/$RUN" $(cd "$W/export/$RUN" && ls | grep -v weights.part); fi
+    mapfile -t pieces < <(cd "$W/export/$RUN" && ls weights.part* instructions.part*)
+    for piece in "${pieces[@]:$first:$count}"; do cp "$W/export/$RUN/$piece" "$OUT/$RUN/"; done
+    if [ "$first" = 0 ]; then tar -cf "$OUT/$RUN/meta.tar" -C "$W/export/$RUN" config.json manifest.json; fi
+    echo "${#pieces[@]} pieces in all"
     ls -l "$OUT/$RUN"
     break
     ;;
