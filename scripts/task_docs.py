@@ -19,14 +19,21 @@ from pathlib import Path
 IMAGE_SIZE = 192  # px: a small picture, enough to tell the objects and their colours apart
 
 
-def success_condition(env_class) -> str:
-    """ManiSkill's docstrings list it under **Success Conditions:**; rvt2-18's environments say it in theirs."""
+def success_condition(env_class) -> tuple[str, str]:
+    """What a section says of success, and under which label. ManiSkill's docstrings list it under
+    **Success Conditions:**; rvt2-18's environments say it in their class's docstring or, with the scene it
+    is checked in, in their module's (after its first line)."""
     doc = inspect.cleandoc(env_class.__doc__ or "")
     if "**Success Conditions:**" in doc:
         section = doc.split("**Success Conditions:**", 1)[1].strip().split("\n\n", 1)[0]
         items = [" ".join(item.split()) for item in ("\n" + section).split("\n- ") if item.strip()]
-        return "; ".join(items)
-    return " ".join(doc.split()) or "(the environment's docstring does not say)"
+        return "Success", "; ".join(items)
+    if doc:
+        return "Success", " ".join(doc.split())
+    module = inspect.cleandoc(inspect.getmodule(env_class).__doc__ or "")
+    if "\n\n" in module:
+        return "The scene and its success", " ".join(module.split("\n\n", 1)[1].split())
+    return "Success", "(the environment's docstring does not say)"
 
 
 def save_picture(task, path: Path, seed: int):
@@ -76,7 +83,7 @@ def section(task, env_class, picture: str, success: list[str]) -> str:
     lines = [f"## {task.name}", "", f"![{task.name}]({picture})", "",
              f"Environment `{task.env_id}`, expert `{task.expert}`, {task.max_steps} control steps at most"
              + (f"; task sets: {', '.join(task.task_sets)}" if task.task_sets else "") + ".", "",
-             f"**Success:** {success_condition(env_class)}", ""]
+             "**{}:** {}".format(*success_condition(env_class)), ""]
     if task.variations:
         held = set(task.held_out_variations)
         lines += [f"**Variations ({task.num_variations}):**", "", "| variation | values | instruction (first template) |",
