@@ -18,6 +18,7 @@ import os
 import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
 import numpy as np
@@ -206,52 +207,38 @@ def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
     return share_data(data, error, device)
 
 
-_PACKED_TENSORS = ("xyz", "rgb", "count", "proprio", "instruction", "lang")  # PackedSamples' fields on the device
-
-
 def share_data(data: TrainingData | None, error: str | None, device) -> TrainingData:
     """Process 0's `data` (or its error) in every process: the small parts pickled, the packed tensors sent
     as they are (NCCL between GPUs). Process 0's sample set keeps its clouds, the others' copy has none
     (only the packed ones are trained on)."""
-    import dataclasses
-
     dist = torch.distributed
     rank = dist.get_rank()
+
+    def outline(packed):  # the packed samples without their tensors, and what those tensors are
+        if packed is None:
+            return None
+        tensors = {f.name: getattr(packed, f.name) for f in dataclass_fields(packed) if torch.is_tensor(getattr(packed, f.name))}
+        return replace(packed, **dict.fromkeys(tensors)), {name: (t.shape, t.dtype) for name, t in tensors.items()}
+
     header = [None]
     if rank == 0:
-        if error is not None:
-            header = [("error", error)]
-        else:
-            def outline(packed):  # the packed samples without their tensors, and what those tensors are
-                if packed is None:
-                    return None
-                shapes = {name: (tuple(getattr(packed, name).shape), getattr(packed, name).dtype) for name in _PACKED_TENSORS}
-                return dataclasses.replace(packed, **dict.fromkeys(_PACKED_TENSORS)), shapes
-
-            clouds = {"xyz": [], "rgb": []}
-            header = [("data", dataclasses.replace(data, samples=dataclasses.replace(data.samples, **clouds),
-                                                   packed=outline(data.packed), packed_val=outline(data.packed_val)))]
+        header = [("error", error)] if error is not None else [
+            ("data", replace(data, samples=replace(data.samples, xyz=[], rgb=[]),
+                             packed=outline(data.packed), packed_val=outline(data.packed_val)))]
     dist.broadcast_object_list(header, src=0, device=device if device.type == "cuda" else None)
     kind, payload = header[0]
     if kind == "error":
         raise UserError(payload)
-    if rank == 0:
-        received = data
-    else:
-        received = payload
 
-        def allocate(outlined):
-            if outlined is None:
-                return None
-            packed, shapes = outlined
-            return dataclasses.replace(packed, **{name: torch.empty(shape, dtype=dtype, device=device)
-                                                  for name, (shape, dtype) in shapes.items()})
+    def allocate(outlined):
+        packed, shapes = outlined
+        return replace(packed, **{name: torch.empty(shape, dtype=dtype, device=device) for name, (shape, dtype) in shapes.items()})
 
-        received = dataclasses.replace(received, packed=allocate(received.packed), packed_val=allocate(received.packed_val))
-    for packed in (received.packed, received.packed_val):
-        if packed is not None:
-            for name in _PACKED_TENSORS:
-                dist.broadcast(getattr(packed, name), src=0)
+    received = data if rank == 0 else replace(payload, packed=allocate(payload.packed),
+                                              packed_val=payload.packed_val and allocate(payload.packed_val))
+    for packed, outlined in ((received.packed, payload.packed), (received.packed_val, payload.packed_val)):
+        for name in outlined[1] if outlined is not None else ():
+            dist.broadcast(getattr(packed, name), src=0)
     return received
 
 

@@ -275,13 +275,14 @@ PY
     cp "$OUT/results.tgz" "$W/" 2>/dev/null || true
     ls -l "$OUT"
     ;;
-  weights)  # pieces FIRST..FIRST+COUNT-1 (15 MiB each, at most 4 per transfer: the float16 weights, then the
-            # instruction embeddings) and, with 0, the config and manifest (meta.tar)
+  weights)  # pieces FIRST..FIRST+COUNT-1 in the manifest's order (15 MiB each, at most 4 per transfer: the
+            # float16 weights, then the instruction embeddings) and, with 0, the config and manifest (meta.tar)
     first=$1 count=$2
     shift 2
     [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$RUN_DIR" "$W/export/$RUN"
     mkdir -p "$OUT/$RUN"
-    mapfile -t pieces < <(cd "$W/export/$RUN" && ls weights.part* instructions.part*)
+    mapfile -t pieces < <(python3 -c 'import json, sys; m = json.load(open(sys.argv[1]))
+print("\n".join(m["pieces"] + m["instruction_pieces"]))' "$W/export/$RUN/manifest.json")
     for piece in "${pieces[@]:$first:$count}"; do cp "$W/export/$RUN/$piece" "$OUT/$RUN/"; done
     if [ "$first" = 0 ]; then tar -cf "$OUT/$RUN/meta.tar" -C "$W/export/$RUN" config.json manifest.json; fi
     echo "${#pieces[@]} pieces in all"
