@@ -12,7 +12,10 @@ other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
     train     one run per training seed (torchrun when --gpus > 1, the global batch kept)
     eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted):
               with `ranges = N`, N disjoint ranges of seeds, one report each (evals/seed0_from10000, ...);
-              each `[eval.extra.NAME]` table is one more evaluation with its own options (evals/seed0_NAME)
+              each `[eval.extra.NAME]` table is one more evaluation with its own options (evals/seed0_NAME).
+              The phase's evaluations run at the same time, sharing --workers in proportion to their
+              episodes: their workers start once, together, and no core waits for another evaluation's
+              last episodes
     offline   each run's precision in millimetres on the held-out demos
     oracle    the expert's own keyframes through the same executor, on the evaluation seeds
 
@@ -24,6 +27,7 @@ The offline-GPU kit runs the same phases (`scripts/offline-gpu-host/gpu_onebox.s
 """
 
 import argparse
+import itertools
 import os
 import shlex
 import subprocess
@@ -38,6 +42,7 @@ from rvt2cli.errors import UserError
 REPOSITORY = Path(__file__).resolve().parent.parent
 EXPERIMENTS = REPOSITORY / "experiments"
 PHASES = ("record", "heldout", "train", "eval", "offline", "oracle")
+CONCURRENT_PHASES = {"eval"}  # its commands run at the same time (`commands` shares the workers among them)
 
 # The keys an experiment file may have, per table; anything else is a typo the user should hear about.
 SCHEMA = {
@@ -150,6 +155,15 @@ def evaluations(evaluate: dict) -> list[tuple[str, int, int, dict]]:
     return runs
 
 
+def share_workers(workers: int, episodes: list[int]) -> list[int]:
+    """`workers` split among evaluations in proportion to their episodes (largest remainders; each at least one)."""
+    exact = [workers * e / sum(episodes) for e in episodes]
+    shares = [int(x) for x in exact]
+    for i in sorted(range(len(exact)), key=lambda i: shares[i] - exact[i])[:workers - sum(shares)]:
+        shares[i] += 1
+    return [max(1, share) for share in shares]
+
+
 def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[str, list[str]]]:
     """(phase, argv) for every command of these phases, in the order they run."""
     rvt2, out, workers = list(settings.rvt2), settings.out, str(settings.workers)
@@ -183,14 +197,15 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                                              "--steps", str(train["steps"]), "--batch-size", str(batch // settings.gpus)]
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
-            for seed in seeds:
-                for name, episodes, first_seed, extra_options in evaluations(evaluate):
-                    folder = out / "evals" / f"seed{seed}{name}"
-                    resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
-                    run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
-                                               "--episodes", str(episodes), "--seed", str(first_seed), "--workers", workers,
-                                               "--device", settings.device, "--out", str(folder)]
-                                + options(extra_options) + resume + ["--no-progress"]))
+            runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate)]
+            shares = share_workers(settings.workers, [episodes for _, _, episodes, _, _ in runs])
+            for (seed, name, episodes, first_seed, extra_options), share in zip(runs, shares):
+                folder = out / "evals" / f"seed{seed}{name}"
+                resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
+                run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
+                                           "--episodes", str(episodes), "--seed", str(first_seed), "--workers", str(share),
+                                           "--device", settings.device, "--out", str(folder)]
+                            + options(extra_options) + resume + ["--no-progress"]))
         elif phase == "offline" and heldout:
             for seed in seeds:
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
@@ -213,26 +228,35 @@ def environment(experiment: dict) -> dict[str, str]:
 
 
 def execute(run: list[tuple[str, list[str]]], out: Path, extra_environment: dict[str, str] | None = None) -> int:
-    """Each command in turn, stopping at the first that fails; each phase's seconds into out/phases.tsv."""
+    """Phase by phase, stopping at the first command that fails; each phase's seconds into out/phases.tsv.
+    A phase's commands run in turn, those of a phase in CONCURRENT_PHASES all at once."""
     out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, **(extra_environment or {})}
-    for index, (phase, argv) in enumerate(run):
-        if index == 0 or run[index - 1][0] != phase:
-            started = time.monotonic()
-            print(f"== {phase}", flush=True)
-        print("$ " + shlex.join(argv), flush=True)
-        try:
-            code = subprocess.run(argv, env=env).returncode
-        except FileNotFoundError:
-            print(f"experiment: error: {argv[0]}: not found; run `make setup` and `source .venv/bin/activate`, "
-                  "or name the command with --rvt2", file=sys.stderr)
-            return 2
-        if code:
-            print(f"experiment: {phase} failed (exit code {code}): {shlex.join(argv)}", file=sys.stderr)
-            return code
-        if index == len(run) - 1 or run[index + 1][0] != phase:
-            with open(out / "phases.tsv", "a") as f:
-                f.write(f"{phase}\t{time.monotonic() - started:.0f}\n")
+    for phase, group in itertools.groupby(run, key=lambda command: command[0]):
+        argvs = [argv for _, argv in group]
+        started = time.monotonic()
+        print(f"== {phase}" + (f" ({len(argvs)} commands at once)" if phase in CONCURRENT_PHASES and len(argvs) > 1 else ""),
+              flush=True)
+        batches = [argvs] if phase in CONCURRENT_PHASES else [[argv] for argv in argvs]
+        for batch in batches:
+            processes = []
+            for argv in batch:
+                print("$ " + shlex.join(argv), flush=True)
+                try:
+                    processes.append((argv, subprocess.Popen(argv, env=env)))
+                except FileNotFoundError:
+                    print(f"experiment: error: {argv[0]}: not found; run `make setup` and `source .venv/bin/activate`, "
+                          "or name the command with --rvt2", file=sys.stderr)
+                    for _, process in processes:
+                        process.wait()
+                    return 2
+            failed = [(argv, code) for argv, process in processes if (code := process.wait())]
+            if failed:  # the others ran to their end: an interrupted evaluation resumes from its journal
+                argv, code = failed[0]
+                print(f"experiment: {phase} failed (exit code {code}): {shlex.join(argv)}", file=sys.stderr)
+                return code
+        with open(out / "phases.tsv", "a") as f:
+            f.write(f"{phase}\t{time.monotonic() - started:.0f}\n")
     return 0
 
 
@@ -285,12 +309,12 @@ def main(argv: list[str] | None = None) -> int:
         return execute(run, out, environment(experiment))
     for name, value in environment(experiment).items():
         print(f"export {name}={value}")
-    phase = None
-    for name, command in run:
-        if name != phase:
-            print(f"# {name}")
-            phase = name
-        print(shlex.join(command))
+    for phase, group in itertools.groupby(run, key=lambda command: command[0]):
+        argvs = [argv for _, argv in group]
+        together = phase in CONCURRENT_PHASES and len(argvs) > 1
+        print(f"# {phase}" + (" (run these at the same time: each has its share of the workers)" if together else ""))
+        for argv in argvs:
+            print(shlex.join(argv))
     return 0
 
 

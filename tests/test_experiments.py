@@ -55,11 +55,39 @@ def test_published_raw_files_are_in_the_tree(path):
 
 def test_evaluation_ranges_and_extra_evaluations(tmp_path):
     """rvt2_18: 100 seeds as two disjoint ranges of 50, each its own report, and the paraphrases on the first."""
-    run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=3))
+    run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=60))
     evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
-    assert [(a.seed, a.episodes, Path(a.out).name, a.paraphrases) for a in evals] == [
-        (10000, 50, "seed0_from10000", False), (10050, 50, "seed0_from10050", False),
-        (10000, 50, "seed0_paraphrases", True)]
+    assert [(a.seed, a.episodes, Path(a.out).name, a.paraphrases, a.workers) for a in evals] == [
+        (10000, 50, "seed0_from10000", False, 20), (10050, 50, "seed0_from10050", False, 20),
+        (10000, 50, "seed0_paraphrases", True, 20)]   # run at the same time, the workers shared
+
+
+def test_workers_are_shared_in_proportion_to_episodes():
+    assert runner.share_workers(60, [50, 50, 50]) == [20, 20, 20]
+    assert runner.share_workers(10, [100, 50, 50]) == [5, 3, 2]   # the first of equal remainders
+    assert runner.share_workers(2, [25, 25, 25]) == [1, 1, 1]   # never none
+    assert runner.share_workers(7, [25]) == [7]
+
+
+def test_an_evaluation_phase_runs_its_commands_at_the_same_time(tmp_path, capsys):
+    """Each command stays until the other has started; one that fails lets the other finish, and the phase
+    fails with its exit code. The other phases run their commands in turn."""
+    wait_for = ("import pathlib, sys, time; me, other, code = sys.argv[1:]; pathlib.Path(me).touch(); "
+                "deadline = time.time() + 20\nwhile not pathlib.Path(other).exists() and time.time() < deadline: time.sleep(0.05)\n"
+                "pathlib.Path(me + '.saw').write_text(str(pathlib.Path(other).exists())); sys.exit(int(code))")
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    run = [("eval", [sys.executable, "-c", wait_for, a, b, "0"]), ("eval", [sys.executable, "-c", wait_for, b, a, "3"]),
+           ("offline", [sys.executable, "-c", "pass"])]
+    assert runner.execute(run, tmp_path / "out") == 3
+    assert (tmp_path / "a.saw").read_text() == "True" and (tmp_path / "b.saw").read_text() == "True"
+    assert "eval failed (exit code 3)" in capsys.readouterr().err
+    assert not (tmp_path / "out" / "phases.tsv").exists()    # the failed phase is not timed, the next not run
+    c, d = str(tmp_path / "c"), str(tmp_path / "d")
+    in_turn = [("offline", [sys.executable, "-c", wait_for.replace("20", "1"), c, d, "0"]),
+               ("offline", [sys.executable, "-c", wait_for.replace("20", "1"), d, c, "0"])]
+    assert runner.execute(in_turn, tmp_path / "out") == 0
+    assert (tmp_path / "c.saw").read_text() == "False"   # the second had not started
+    assert (tmp_path / "out" / "phases.tsv").read_text().split("\t")[0] == "offline"
 
 
 def test_the_unseen_split_leaves_held_out_variations_out_of_the_training_demos(tmp_path):

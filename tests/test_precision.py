@@ -7,9 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from rvt2cli.data.keyframes import Keyframe
-from rvt2cli.eval.executor import COLLISION_RESOLUTION, REACH_SLACK_M, Executor
+from rvt2cli.eval.executor import CLEARANCE, COLLISION_RESOLUTION, REACH_SLACK_M, Executor
+from rvt2cli.eval.robot_geometry import RobotGeometry
 from rvt2cli.eval.rollout import _collision_points
 from rvt2cli.eval.sources import OracleSource
 from rvt2cli.eval.taxonomy import REASONS, count_reasons, failure_reason
@@ -34,6 +36,33 @@ def peg_env():
 def _colliding_links(executor: Executor, points: np.ndarray) -> set[str]:
     executor.planner.update_point_cloud(points, radius=COLLISION_RESOLUTION)
     return {c.link_name1 for c in executor.planner.check_for_env_collision(qpos=executor.qpos(), with_point_cloud=True)}
+
+
+def test_the_robot_geometry_clears_exactly_the_points_its_faces_define():
+    """`RobotGeometry.near` tests a hull's faces only on the points in a ball around the padded hull.
+    On the Panda's own collision hulls, each link at a random pose, it marks the same points as testing
+    every point against every face: those below `pad` above all the faces of some hull."""
+    import mani_skill
+
+    urdf = Path(mani_skill.__file__).parent / "assets" / "robots" / "panda" / "panda_v2.urdf"
+    geometry = RobotGeometry.from_urdf(urdf, "panda_joint7")
+    rng = np.random.default_rng(0)
+    poses = {}
+    for name in geometry.hulls:
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        pose[:3, 3] = rng.uniform(-0.3, 0.3, 3)
+        poses[name] = pose
+    around_links = np.concatenate([pose[:3, 3] + rng.normal(0, 0.06, (4000, 3)) for pose in poses.values()])
+    points = np.concatenate([around_links, rng.uniform(-0.6, 0.6, (20_000, 3))])
+    for pad in (0.0, CLEARANCE, 0.05):
+        every_face = np.zeros(len(points), dtype=bool)
+        for name, pose in poses.items():
+            for hull in geometry.hulls[name]:
+                local = (points - pose[:3, 3]) @ pose[:3, :3]
+                every_face |= (local @ hull.planes[:, :3].T + hull.planes[:, 3]).max(axis=1) < pad
+        assert 0.05 < every_face.mean() < 0.9  # the test is not trivial either way
+        np.testing.assert_array_equal(geometry.near(points, poses, pad), every_face)
 
 
 @pytest.mark.sim
@@ -161,3 +190,28 @@ def test_replay_runs_a_recorded_policys_keyframes_through_the_executor(tmp_path)
     assert [s["target"] for s in replayed["steps"]] == [s["target"] for s in recorded["steps"]]
     assert replayed["success"] == recorded["success"]
     assert "replay of" in (tmp_path / "eval.md").read_text()
+
+
+@pytest.mark.sim
+def test_eval_bench_times_the_replayed_episode_and_its_parts(tmp_path):
+    """benchmarks/eval_bench.py (docs/BENCHMARKS.md, "Evaluation"): the same replay, from a compressed
+    journal, timed in one process, its time split into the parts of an episode."""
+    import gzip
+    import subprocess
+    import sys
+
+    journal = tmp_path / "episodes.jsonl.gz"
+    journal.write_bytes(gzip.compress(V2_JOURNAL.read_bytes()))
+    out = tmp_path / "bench.json"
+    run = subprocess.run([sys.executable, "-m", "benchmarks.eval_bench", str(journal), "--tasks", "pick_cube", "--episodes", "1",
+                          "--json", str(out)], capture_output=True, text=True, cwd=Path(__file__).resolve().parent.parent)
+    assert run.returncode == 0, run.stderr
+    bench = json.loads(out.read_text())
+    (episode,) = bench["episodes"]
+    recorded = next(r for line in V2_JOURNAL.read_text().splitlines()[1:]
+                    if (r := json.loads(line))["task"] == "pick_cube" and r["seed"] == 10000)
+    assert (episode["task"], episode["seed"], episode["success"]) == ("pick_cube", 10000, recorded["success"])
+    parts = bench["parts_s"]
+    assert parts["render the cameras"] > 0 and parts["simulate (control steps)"] > 0
+    assert sum(parts.values()) <= bench["seconds"] * 1.01 and bench["seconds"] >= episode["seconds"]
+    assert "| pick_cube | 1 |" in run.stdout

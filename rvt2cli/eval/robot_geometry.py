@@ -12,6 +12,9 @@ The geometry is the URDF's own `<collision>` elements (meshes, boxes, cylinders,
 as its convex hull: a point is inside the padded hull where its distance above every face plane is
 below `pad` (a slightly larger region than the exact offset surface at the hull's edges and corners,
 which errs on the side of clearing). The same code serves a real robot: its URDF and joint state.
+
+A scene cloud has tens of thousands of points and the Panda's hulls 200-300 faces each, so each hull
+first keeps the points inside a ball around its padded region; only those are tested against its faces.
 """
 
 import functools
@@ -20,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import linprog
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
@@ -71,12 +75,32 @@ class Hull:
     def of(vertices: np.ndarray) -> "Hull":
         return Hull(ConvexHull(vertices).equations)
 
+    def ball(self, pad: float) -> tuple[np.ndarray, float]:
+        """(centre, radius) of a ball, in the hull's frame, that holds its padded region
+        {p : planes @ [p, 1] < pad}: around the region's axis-aligned box, found by six linear programs."""
+        ends = []
+        for direction in np.vstack([np.eye(3), -np.eye(3)]):  # min x, y, z, then -max x, y, z
+            solved = linprog(direction, A_ub=self.planes[:, :3], b_ub=pad - self.planes[:, 3], bounds=[(None, None)] * 3,
+                             method="highs")
+            if solved.status != 0:
+                raise ValueError(f"the padded hull has no bounding box (linprog: {solved.message})")
+            ends.append(solved.fun)
+        low, high = np.array(ends[:3]), -np.array(ends[3:])
+        return (low + high) / 2, float(np.linalg.norm(high - low) / 2) + 1e-6  # the solver's tolerance
+
 
 class RobotGeometry:
     """Each link's collision hulls, and which links ride with the tool centre point."""
 
     def __init__(self, hulls: dict[str, list[Hull]], rides_with_tcp: frozenset[str]):
         self.hulls, self.rides_with_tcp = hulls, rides_with_tcp
+        self._balls: dict[float, dict[str, list[tuple[np.ndarray, float]]]] = {}  # per pad, each link's hulls'
+
+    def balls(self, pad: float) -> dict[str, list[tuple[np.ndarray, float]]]:
+        """Each link's hulls' bounding balls (`Hull.ball`) for this pad, computed once."""
+        if pad not in self._balls:
+            self._balls[pad] = {name: [hull.ball(pad) for hull in hulls] for name, hulls in self.hulls.items()}
+        return self._balls[pad]
 
     @staticmethod
     @functools.cache  # every evaluation episode builds an executor; the meshes load once per process
@@ -112,9 +136,12 @@ class RobotGeometry:
     def near(self, points: np.ndarray, link_poses: dict[str, np.ndarray], pad: float) -> np.ndarray:
         """bool [N]: the points within `pad` of a hull of the given links, each at its 4x4 world pose."""
         hit = np.zeros(len(points), dtype=bool)
+        balls = self.balls(pad)
         for name, pose in link_poses.items():
-            for hull in self.hulls.get(name, ()):
-                local = (points - pose[:3, 3]) @ pose[:3, :3]   # world -> link frame
+            for hull, (centre, radius) in zip(self.hulls.get(name, ()), balls.get(name, ())):
+                offset = points - (pose[:3, :3] @ centre + pose[:3, 3])
+                inside = np.flatnonzero(np.einsum("ij,ij->i", offset, offset) < radius * radius)
+                local = (points[inside] - pose[:3, 3]) @ pose[:3, :3]   # world -> link frame
                 above = local @ hull.planes[:, :3].T + hull.planes[:, 3]
-                hit |= above.max(axis=1) < pad
+                hit[inside[above.max(axis=1, initial=-np.inf) < pad]] = True
         return hit
