@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from benchmarks.machine import describe
+from rvt2cli.eval.journal import Journal, read_journal
 from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.runner import evaluate
 
@@ -35,17 +36,20 @@ PARTS = {
 }
 
 
-def merged_journal(paths: list[Path], into: Path) -> Path:
-    """One journal of every policy episode of `paths` (the first one's plan line)."""
-    lines = []
-    for path in paths:
-        opener = gzip.open if path.suffix == ".gz" else open
-        with opener(path, "rt") as f:
-            text = f.read().splitlines()
-        lines += text[:1] if not lines else []
-        lines += [line for line in text[1:] if json.loads(line).get("source") == "policy"]
-    into.write_text("\n".join(lines) + "\n")
-    return into
+def merged_journal(paths: list[Path], folder: Path) -> Path:
+    """One journal in `folder` of every policy episode of `paths` (.gz ones decompressed), with the first one's plan."""
+    journal = None
+    for index, path in enumerate(paths):
+        if path.suffix == ".gz":
+            plain = folder / f"{index}.jsonl"
+            plain.write_bytes(gzip.decompress(path.read_bytes()))
+            path = plain
+        plan, records = read_journal(path)
+        journal = journal or Journal(folder, plan, resume=False)
+        for record in records:
+            if record["source"] == "policy":
+                journal.append(record)
+    return journal.path
 
 
 def part_seconds(stats: pstats.Stats) -> dict[str, float]:
@@ -66,7 +70,7 @@ def main() -> None:
     parser.add_argument("--json")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as work:
-        journal = merged_journal(args.journals, Path(work) / "replayed.jsonl")
+        journal = merged_journal(args.journals, Path(work))
         opts = EvalOptions(checkpoint=None, replay=str(journal), tasks=tuple(t for t in args.tasks.split(",") if t),
                            episodes=args.episodes, seed=args.seed, out=str(Path(work) / "eval"))
         episodes, last = [], [time.perf_counter()]

@@ -227,6 +227,10 @@ def environment(experiment: dict) -> dict[str, str]:
     return {} if renderer == "auto" else {"RVT2_VULKAN": renderer}
 
 
+def runs_together(phase: str, argvs: list[list[str]]) -> bool:
+    return phase in CONCURRENT_PHASES and len(argvs) > 1
+
+
 def execute(run: list[tuple[str, list[str]]], out: Path, extra_environment: dict[str, str] | None = None) -> int:
     """Phase by phase, stopping at the first command that fails; each phase's seconds into out/phases.tsv.
     A phase's commands run in turn, those of a phase in CONCURRENT_PHASES all at once."""
@@ -235,9 +239,9 @@ def execute(run: list[tuple[str, list[str]]], out: Path, extra_environment: dict
     for phase, group in itertools.groupby(run, key=lambda command: command[0]):
         argvs = [argv for _, argv in group]
         started = time.monotonic()
-        print(f"== {phase}" + (f" ({len(argvs)} commands at once)" if phase in CONCURRENT_PHASES and len(argvs) > 1 else ""),
-              flush=True)
-        batches = [argvs] if phase in CONCURRENT_PHASES else [[argv] for argv in argvs]
+        together = runs_together(phase, argvs)
+        print(f"== {phase}" + (f" ({len(argvs)} commands at once)" if together else ""), flush=True)
+        batches = [argvs] if together else [[argv] for argv in argvs]
         for batch in batches:
             processes = []
             for argv in batch:
@@ -311,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"export {name}={value}")
     for phase, group in itertools.groupby(run, key=lambda command: command[0]):
         argvs = [argv for _, argv in group]
-        together = phase in CONCURRENT_PHASES and len(argvs) > 1
+        together = runs_together(phase, argvs)
         print(f"# {phase}" + (" (run these at the same time: each has its share of the workers)" if together else ""))
         for argv in argvs:
             print(shlex.join(argv))
