@@ -44,3 +44,29 @@ def test_export_matches_pytorch_on_recorded_observations(tiny_checkpoint, tiny_d
 def test_export_refuses_missing_checkpoint(tmp_path, cli):
     assert_one_line_error(cli("export", "--checkpoint", tmp_path / "missing", "--out", tmp_path / "p"), "missing", "no such checkpoint")
     assert not (tmp_path / "p").exists()
+
+
+def test_a_checkpoint_crosses_in_pieces_rounded_to_float16_or_exact(tiny_checkpoint, tmp_path):
+    """scripts/offline-gpu-host/gpu_checkpoint.py: a run leaves a GPU machine without network access in
+    pieces and is put back together elsewhere; --exact keeps the weights bit for bit (an evaluation
+    resumed there runs the model its first episodes ran), the default rounds them to float16."""
+    import torch
+    from safetensors.torch import load_file
+
+    from rvt2cli.train.checkpoint import WEIGHTS, resolve
+
+    run_dir, _ = tiny_checkpoint
+    script = Path(__file__).parent.parent / "scripts" / "offline-gpu-host" / "gpu_checkpoint.py"
+    trained = load_file(str(resolve(run_dir) / WEIGHTS))
+    for exact in (True, False):
+        pieces, restored = tmp_path / f"pieces_{exact}", tmp_path / f"run_{exact}"
+        for command in (["shrink", str(run_dir), str(pieces)] + (["--exact"] if exact else []),
+                        ["restore", str(pieces), str(restored)]):
+            r = subprocess.run([sys.executable, str(script), *command], capture_output=True, text=True, timeout=300)
+            assert r.returncode == 0, r.stderr[-2000:]
+        weights = load_file(str(resolve(restored) / WEIGHTS))
+        assert weights.keys() == trained.keys()
+        for name, value in trained.items():
+            expected = value if exact or not value.is_floating_point() else value.half().float()
+            assert torch.equal(weights[name], expected), name
+        assert ("transfer" in json.loads((pieces / "config.json").read_text())) != exact

@@ -360,3 +360,27 @@ def test_an_aim_puts_the_predicted_tcp_behind_the_aimed_point():
     assert torch.equal(aimed.position[1], plain.position[1])
     expected = Rotation.from_quat(aimed.quaternion.double().numpy()).apply(aim.double().numpy())
     assert np.allclose(behind.numpy(), expected, atol=1e-6)
+
+
+def test_an_instruction_cache_pickles_to_the_size_of_its_embeddings():
+    """A several-GPU `rvt2 train` pickles the instruction cache to send it to the other processes. Each
+    embedding must own its storage: a view into the batch they were embedded in pickles the whole batch,
+    once per instruction (rvt2-18's 578 instructions came to 36.8 GiB and ran a GPU out of memory)."""
+    import pickle
+
+    from rvt2cli.model.language import InstructionCache
+    from rvt2cli.tasks import get_task
+
+    texts = get_task("close_jar").all_paraphrases()
+    assert len(texts) >= 20
+    tokens = SMALL.lang_tokens
+    computed = InstructionCache(tokens)
+    lang = computed(texts)
+    longer = torch.randn(len(texts), 2 * tokens, 384)   # a sample cache stores a longer prefix than a config uses
+    known = InstructionCache(tokens, {text: longer[i, :tokens] for i, text in enumerate(texts)})
+    for cache in (computed, known):
+        embeddings = cache.as_dict()
+        payload = sum(e.nelement() * e.element_size() for e in embeddings.values())
+        assert len(pickle.dumps(cache)) < 1.1 * payload + 2**16
+        assert pickle.loads(pickle.dumps(cache)).as_dict().keys() == embeddings.keys()
+    assert torch.equal(known(texts), longer[:, :tokens]) and torch.equal(computed(texts), lang)

@@ -202,6 +202,29 @@ def test_several_processes_train_on_the_data_process_0_read(tiny_dataset, tmp_pa
     assert "Traceback" not in r.stderr.split("no keyframes")[0]
 
 
+
+def test_share_bench_sends_the_data_with_its_instruction_embeddings_at_their_own_size(tmp_path):
+    """benchmarks/share_bench.py on two CPU processes: every process ends with the first one's data, and the
+    pickled instruction embeddings weigh what the embeddings do (a view per instruction into one batch once
+    pickled that batch per instruction: 36.8 GiB for rvt2-18, past a GPU's free memory)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from benchmarks.share_bench import LANG_DIM, LANG_TOKENS
+
+    out = tmp_path / "share.json"
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m",
+                        "benchmarks.share_bench", "--scale", "0.02", "--json", str(out)],
+                       cwd=Path(__file__).parent.parent, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert result["same"] and len(result["processes"]) == 2
+    embeddings_mib = 11 * LANG_TOKENS * LANG_DIM * 4 / 2**20   # int(578 * 0.02) instructions
+    assert result["instruction_cache_mib"] < 1.1 * embeddings_mib
+
 def _two_nodes(out, *extra) -> list[list[str]]:
     """`rvt2 train` as two machines start it (README, "Several machines"): one torchrun per node, one
     process each, meeting at a c10d rendezvous; here both nodes are this machine."""

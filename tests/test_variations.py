@@ -10,7 +10,7 @@ from rvt2cli.data import read_episode, schemas
 from rvt2cli.errors import UserError
 from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.rollout import KeyframeSource, run_episode
-from rvt2cli.eval.runner import evaluate
+from rvt2cli.eval.runner import evaluate, plan_jobs
 from rvt2cli.eval.sources import expert_keyframes
 from rvt2cli.eval.taxonomy import failure_reason
 from rvt2cli.record.expert import run_expert
@@ -164,6 +164,17 @@ b = "red"
         _parse('name = "t"\nenv_id = "X"\nexpert = "m:f"\nmax_steps = 10\ninstructions = ["x"]\n'
                'held_out_variations = [0]', "tasks/t.toml")
 
+
+
+def test_an_evaluation_plans_the_tasks_in_turns_with_their_variations_drawn_evenly():
+    """A stopped evaluation has as many episodes of every task: the jobs go task after task, seed by seed."""
+    tasks = ("close_jar", "push_buttons", "insert_peg")   # 20, 50 and 1 variations
+    jobs = plan_jobs(EvalOptions(checkpoint=None, oracle=True, tasks=tasks, episodes=3, seed=10000), [], {})
+    assert [(job.task, job.seed) for job in jobs] == [(task, seed) for seed in range(10000, 10003) for task in tasks]
+    for task in tasks:
+        choices = get_task(task).variation_choices()
+        assert [job.variation for job in jobs if job.task == task] == [episode_variation(s, choices)
+                                                                        for s in range(10000, 10003)]
 
 def test_task_sets():
     assert TASK in tasks_of_set("rlbench18")

@@ -5,6 +5,7 @@ Every finished episode goes into the journal at once (`rvt2cli.eval.journal`): a
 process costs the episodes it was running, not the finished ones, and `--resume` runs the rest.
 """
 
+import itertools
 import time
 import warnings
 from concurrent.futures import FIRST_COMPLETED, wait
@@ -117,7 +118,9 @@ def _demo_seeds(paths) -> dict[tuple[str, int], str]:
 
 def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict,
               replayed: dict[str, set[int]] | None = None) -> list[Job]:
-    """The episodes to run; `replayed`: a recorded evaluation's seeds per task (--replay)."""
+    """The episodes to run, the tasks taking turns (each task's first episode, then each one's second...): an
+    evaluation stopped part way has as many episodes of every task, and the long tasks do not all come last.
+    `replayed`: a recorded evaluation's seeds per task (--replay)."""
     tasks = list(opts.tasks) or checkpoint_tasks or sorted({t for t, _ in demos})
     if not tasks:
         raise UserError("no tasks to evaluate: give --tasks (or a checkpoint, whose training tasks are the default)")
@@ -125,8 +128,9 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict,
     if not any(choices.values()):  # only --variations held-out leaves a task none
         raise UserError(f"--variations {opts.variations}: none of the tasks {', '.join(tasks)} has held_out_variations "
                         "(tasks/*.toml)")
-    jobs = []
+    per_task = []
     for name in [n for n in tasks if choices[n]]:
+        jobs = []
         def job(source, seed):  # consecutive seeds take the variations in turn: even, and the same in every run
             return Job(source, name, seed, episode_variation(seed, choices[name]))
 
@@ -140,7 +144,8 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict,
             jobs += [Job("oracle", name, s, _demo_variation(demos[(name, s)])) for s in demo_seeds]
         elif opts.oracle:
             jobs += [job("oracle", s) for s in range(opts.seed, opts.seed + opts.episodes)]
-    return jobs
+        per_task.append(jobs)
+    return [job for turn in itertools.zip_longest(*per_task) for job in turn if job is not None]
 
 
 def _demo_variation(path: str) -> int:

@@ -4,6 +4,7 @@ Such a host returns at most 64 MiB per transfer, in files of at most 16 MiB. On 
 
     python3 scripts/offline-gpu-host/gpu_checkpoint.py shrink RUN_DIR OUT_DIR     # config, and fp16 weights and the
                                                                                   # instruction embeddings in 15 MiB pieces
+                                                                                  # (--exact: float32 weights)
 
 and on the machine that receives them, once every piece has come back into one folder:
 
@@ -11,7 +12,8 @@ and on the machine that receives them, once every piece has come back into one f
 
 The weights travel as float16 (half the size) and are restored to float32; config.json records this.
 Training ran under bf16 autocast, so every matrix product already used weights rounded to 8 significant
-bits; float16 keeps 11.
+bits; float16 keeps 11. With --exact they travel as trained: an evaluation resumed on another machine
+then runs the very model its first episodes ran.
 """
 
 import argparse
@@ -50,17 +52,21 @@ def _join(pieces_dir: Path, names: list[str], sha256: str, what: str) -> bytes:
     return blob
 
 
-def shrink(run: Path, out: Path) -> None:
+def shrink(run: Path, out: Path, exact: bool = False) -> None:
+    """`exact`: the weights as trained (float32, twice the pieces), for an evaluation that goes on elsewhere
+    with `rvt2 eval --resume` and must run the model its first episodes ran."""
     ckpt = resolve(run)
     out.mkdir(parents=True, exist_ok=True)
     weights = load_file(str(ckpt / WEIGHTS))
-    blob = save({k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in weights.items()})
+    dtype = torch.float32 if exact else torch.float16
+    blob = save({k: (v.to(dtype) if v.is_floating_point() else v).contiguous() for k, v in weights.items()})
     pieces = _split(blob, "weights", out)
     # the instruction embeddings (every phrasing of every variation: 68 MB for rvt2-18) travel in pieces too
     instructions = (ckpt / INSTRUCTIONS).read_bytes()
     instruction_pieces = _split(instructions, "instructions", out)
     config = json.loads((ckpt / CONFIG).read_text())
-    config["transfer"] = {"weights_dtype": "float16", "note": "weights rounded to float16 to leave the GPU machine"}
+    if not exact:
+        config["transfer"] = {"weights_dtype": "float16", "note": "weights rounded to float16 to leave the GPU machine"}
     (out / CONFIG).write_text(json.dumps(config, indent=2))
     manifest = {"step": config["step"], "pieces": pieces, "sha256": hashlib.sha256(blob).hexdigest(),
                 "instruction_pieces": instruction_pieces,
@@ -95,12 +101,13 @@ def main() -> None:
     s = sub.add_parser("shrink")
     s.add_argument("run", type=Path)
     s.add_argument("out", type=Path)
+    s.add_argument("--exact", action="store_true", help="float32 weights, as trained (default: float16, half the pieces)")
     r = sub.add_parser("restore")
     r.add_argument("pieces", type=Path)
     r.add_argument("run", type=Path)
     args = parser.parse_args()
     if args.command == "shrink":
-        shrink(args.run, args.out)
+        shrink(args.run, args.out, args.exact)
     else:
         restore(args.pieces, args.run)
 

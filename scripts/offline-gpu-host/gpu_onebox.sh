@@ -23,7 +23,8 @@
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
-# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results).
+# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results);
+# EXACT=1: `weights` sends float32 weights as trained (an evaluation to be resumed elsewhere: 25 pieces for rvt2-18).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root: every path below is relative to it
 KIT=scripts/offline-gpu-host
@@ -279,7 +280,7 @@ PY
             # float16 weights, then the instruction embeddings) and, with 0, the config and manifest (meta.tar)
     first=$1 count=$2
     shift 2
-    [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$RUN_DIR" "$W/export/$RUN"
+    [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$RUN_DIR" "$W/export/$RUN" ${EXACT:+--exact}
     mkdir -p "$OUT/$RUN"
     mapfile -t pieces < <(python3 -c 'import json, sys; m = json.load(open(sys.argv[1]))
 print("\n".join(m["pieces"] + m["instruction_pieces"]))' "$W/export/$RUN/manifest.json")
