@@ -16,8 +16,6 @@ import json
 import os
 import pickle
 import time
-from dataclasses import replace
-
 import numpy as np
 import torch
 import torch.distributed as dist
@@ -25,7 +23,7 @@ import torch.distributed as dist
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.train.batches import PackedSamples
 from rvt2cli.train.samples import SampleSet
-from rvt2cli.train.trainer import TrainingData, share_data
+from rvt2cli.train.trainer import TrainingData, pickled_part, share_data
 
 TRAIN, VALIDATION, POINTS, INSTRUCTIONS, TASKS, EPISODES = 61_885, 617, 50_000, 578, 18, 1_800  # rvt2-18, 100 demos per task
 LANG_TOKENS, LANG_DIM = 77, 384
@@ -87,8 +85,7 @@ def main() -> None:
     data, before = None, {}
     if rank == 0:
         data = training_data(args.scale, device)
-        pickled = replace(data, samples=replace(data.samples, xyz=[], rgb=[]), packed=None, packed_val=None)
-        before = {"pickled_mib": len(pickle.dumps(pickled)) / 2**20,
+        before = {"pickled_mib": len(pickle.dumps(pickled_part(data))) / 2**20,
                   "instruction_cache_mib": len(pickle.dumps(data.instructions)) / 2**20,
                   "first_process_gib": torch.cuda.memory_allocated() / 2**30 if cuda else 0.0,
                   "train_samples": len(data.packed), "points": data.packed.xyz.shape[1]}

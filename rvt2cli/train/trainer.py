@@ -207,24 +207,28 @@ def load_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
     return share_data(data, error, device)
 
 
+def pickled_part(data: TrainingData) -> TrainingData:
+    """What `share_data` pickles: `data` without the sample set's clouds, its packed samples without their
+    tensors but with each tensor's shape and dtype (the tensors travel apart)."""
+    def outline(packed):
+        if packed is None:
+            return None
+        tensors = {f.name: getattr(packed, f.name) for f in dataclass_fields(packed) if torch.is_tensor(getattr(packed, f.name))}
+        return replace(packed, **dict.fromkeys(tensors)), {name: (t.shape, t.dtype) for name, t in tensors.items()}
+
+    return replace(data, samples=replace(data.samples, xyz=[], rgb=[]), packed=outline(data.packed),
+                   packed_val=outline(data.packed_val))
+
+
 def share_data(data: TrainingData | None, error: str | None, device) -> TrainingData:
     """Process 0's `data` (or its error) in every process: the small parts pickled, the packed tensors sent
     as they are (NCCL between GPUs). Process 0's sample set keeps its clouds, the others' copy has none
     (only the packed ones are trained on)."""
     dist = torch.distributed
     rank = dist.get_rank()
-
-    def outline(packed):  # the packed samples without their tensors, and what those tensors are
-        if packed is None:
-            return None
-        tensors = {f.name: getattr(packed, f.name) for f in dataclass_fields(packed) if torch.is_tensor(getattr(packed, f.name))}
-        return replace(packed, **dict.fromkeys(tensors)), {name: (t.shape, t.dtype) for name, t in tensors.items()}
-
     header = [None]
     if rank == 0:
-        header = [("error", error)] if error is not None else [
-            ("data", replace(data, samples=replace(data.samples, xyz=[], rgb=[]),
-                             packed=outline(data.packed), packed_val=outline(data.packed_val)))]
+        header = [("error", error)] if error is not None else [("data", pickled_part(data))]
     dist.broadcast_object_list(header, src=0, device=device if device.type == "cuda" else None)
     kind, payload = header[0]
     if kind == "error":
