@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rvt2cli.errors import UserError
+from rvt2cli.runtime import render_threads
 
 REPOSITORY = Path(__file__).resolve().parent.parent
 EXPERIMENTS = REPOSITORY / "experiments"
@@ -220,11 +221,15 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     return run
 
 
-def environment(experiment: dict) -> dict[str, str]:
+def environment(experiment: dict, workers: int) -> dict[str, str]:
     """What the commands' environment gains: the Vulkan driver of `renderer`, where the file names one.
-    Demos and evaluations must share a renderer (docs/RESULTS.md, "Renderer"), so the file fixes it."""
+    Demos and evaluations must share a renderer (docs/RESULTS.md, "Renderer"), so the file fixes it.
+    And lavapipe's threads per simulator, counted over all `workers`: the evaluations that run together
+    would each count only their share (30 of 60 workers on 64 cores: 2 threads each, 120 in all).
+    A limit set in the caller's environment is kept."""
     renderer = experiment.get("renderer", "auto")
-    return {} if renderer == "auto" else {"RVT2_VULKAN": renderer}
+    gained = {} if renderer == "auto" else {"RVT2_VULKAN": renderer}
+    return gained | {k: v for k, v in render_threads(workers).items() if k not in os.environ}
 
 
 def runs_together(phase: str, argvs: list[list[str]]) -> bool:
@@ -310,8 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"experiment: error: {e}", file=sys.stderr)
         return e.exit_code
     if args.run:
-        return execute(run, out, environment(experiment))
-    for name, value in environment(experiment).items():
+        return execute(run, out, environment(experiment, args.workers))
+    for name, value in environment(experiment, args.workers).items():
         print(f"export {name}={value}")
     for phase, group in itertools.groupby(run, key=lambda command: command[0]):
         argvs = [argv for _, argv in group]

@@ -165,7 +165,7 @@ def end_with_parent() -> None:
 # Thread pools a simulator worker would otherwise size to the whole machine: OpenMP, the BLAS libraries
 # numpy and torch link, and Mesa's software rasteriser (lavapipe renders with LP_NUM_THREADS threads).
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-_RENDER_THREADS = "LP_NUM_THREADS"
+RENDER_THREADS = "LP_NUM_THREADS"
 
 
 # Reading episodes in parallel (extract-keyframes, train): at least this many files per worker process,
@@ -175,6 +175,13 @@ FILES_PER_WORKER = 32
 
 def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def render_threads(workers: int) -> dict[str, str]:
+    """The render-thread limit for `workers` simulators sharing this machine: lavapipe's threads, cores //
+    workers each. Commands that run side by side give their children the limit of all their workers
+    together (`benchmarks/experiment.py`), since each pool alone would count only its own."""
+    return {RENDER_THREADS: str(max(1, usable_cores() // workers))}
 
 
 @contextlib.contextmanager
@@ -190,8 +197,7 @@ def worker_pool(workers: int, initializer=None, initargs=(), gpus: str = "one"):
     simulators rendering with lavapipe), so that they open no CUDA context at all."""
     from concurrent.futures import ProcessPoolExecutor
 
-    limits = {name: "1" for name in _THREAD_VARIABLES}
-    limits[_RENDER_THREADS] = str(max(1, usable_cores() // workers))
+    limits = {name: "1" for name in _THREAD_VARIABLES} | render_threads(workers)
     saved = {name: os.environ.get(name) for name in limits}
     for name, value in limits.items():
         os.environ.setdefault(name, value)

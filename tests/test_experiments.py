@@ -10,6 +10,7 @@ import pytest
 from benchmarks import experiment as runner
 from rvt2cli.cli import build_parser
 from rvt2cli.cli.train import options_from
+from rvt2cli.runtime import usable_cores
 from rvt2cli.train.trainer import model_config
 
 EXPERIMENT_FILES = sorted(runner.EXPERIMENTS.glob("*.toml"))
@@ -90,6 +91,22 @@ def test_an_evaluation_phase_runs_its_commands_at_the_same_time(tmp_path, capsys
     assert (tmp_path / "out" / "phases.tsv").read_text().split("\t")[0] == "offline"
 
 
+def test_evaluations_side_by_side_share_the_cores_as_they_share_the_workers(tmp_path, monkeypatch):
+    """Each of rvt2-18's three evaluations gets a third of the workers; lavapipe's threads per worker are
+    counted over all of them, in every command's environment, not over each command's own third."""
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    experiment = runner.load(runner.resolve("rvt2_18"))
+    workers = 3 * max(1, usable_cores() // 2)
+    gained = runner.environment(experiment, workers)
+    assert gained == {"RVT2_VULKAN": "lavapipe", "LP_NUM_THREADS": str(max(1, usable_cores() // workers))}
+    shown = "import os, sys; open(sys.argv[1], 'w').write(os.environ['LP_NUM_THREADS'])"
+    run = [("eval", [sys.executable, "-c", shown, str(tmp_path / name)]) for name in "abc"]
+    assert runner.execute(run, tmp_path / "out", gained) == 0
+    assert {(tmp_path / name).read_text() for name in "abc"} == {gained["LP_NUM_THREADS"]}
+    monkeypatch.setenv("LP_NUM_THREADS", "5")
+    assert "LP_NUM_THREADS" not in runner.environment(experiment, workers)   # the caller's own is kept
+
+
 def test_the_unseen_split_leaves_held_out_variations_out_of_the_training_demos(tmp_path):
     run = runner.commands(runner.load(runner.resolve("rvt2_18_unseen")), runner.Settings(out=tmp_path, workers=2))
     record = [argv for phase, argv in run if phase == "record" and argv[1] == "record"]
@@ -100,11 +117,13 @@ def test_the_unseen_split_leaves_held_out_variations_out_of_the_training_demos(t
         runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=2)))
 
 
-def test_print_is_the_default_and_names_each_phase(capsys):
+def test_print_is_the_default_and_names_each_phase(capsys, monkeypatch):
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
     assert runner.main(["rvt2_25demos", "--phase", "train,eval", "--workers", "4"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[:2] == ["export RVT2_VULKAN=nvidia", "# train"] and "# eval" in lines   # the published renderer
-    train = lines[2]
+    assert lines[:3] == ["export RVT2_VULKAN=nvidia", f"export LP_NUM_THREADS={max(1, usable_cores() // 4)}",
+                         "# train"] and "# eval" in lines   # the published renderer, lavapipe's threads
+    train = lines[3]
     assert train.startswith("rvt2 train ") and "--task-weights insert_peg=3,plug_charger=3" in train
     assert not Path("data/experiments/rvt2_25demos").exists()  # printing creates nothing
 
@@ -140,7 +159,7 @@ def test_gpus_must_divide_the_batch(capsys):
 
 
 @pytest.mark.sim
-def test_run_executes_a_phase_and_times_it(tmp_path, capsys):
+def test_run_executes_a_phase_and_times_it(tmp_path, capsys, monkeypatch):
     """--run on the real simulator: the oracle of one push_cube episode."""
     path = tmp_path / "tiny.toml"
     path.write_text("name = 'tiny'\nrenderer = 'lavapipe'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n"
@@ -153,5 +172,6 @@ def test_run_executes_a_phase_and_times_it(tmp_path, capsys):
     assert report["episodes_per_task"] == 1 and report["seed"] == 10000
     assert [line.split("\t")[0] for line in (out / "phases.tsv").read_text().splitlines()] == ["oracle"]
     capsys.readouterr()
+    monkeypatch.setenv("LP_NUM_THREADS", "3")   # the caller's own limit is kept, and not printed
     assert runner.main([str(path), "--phase", "oracle"]) == 0   # printed: the renderer first
     assert capsys.readouterr().out.startswith("export RVT2_VULKAN=lavapipe\n# oracle\n")
