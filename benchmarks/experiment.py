@@ -13,9 +13,9 @@ other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
     eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted):
               with `ranges = N`, N disjoint ranges of seeds, one report each (evals/seed0_from10000, ...);
               each `[eval.extra.NAME]` table is one more evaluation with its own options (evals/seed0_NAME).
-              The phase's evaluations run at the same time, sharing --workers in proportion to their
-              episodes: their workers start once, together, and no core waits for another evaluation's
-              last episodes
+              The phase's evaluations run at the same time, sharing --workers in proportion to the
+              episodes each has left (an interrupted one resumes): their workers start once, together,
+              and no core waits for another evaluation's last episodes
     offline   each run's precision in millimetres on the held-out demos
     oracle    the expert's own keyframes through the same executor, on the evaluation seeds
 
@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rvt2cli.errors import UserError
+from rvt2cli.eval.journal import read_journal
 from rvt2cli.runtime import render_threads
 
 REPOSITORY = Path(__file__).resolve().parent.parent
@@ -165,6 +166,13 @@ def share_workers(workers: int, episodes: list[int]) -> list[int]:
     return [max(1, share) for share in shares]
 
 
+def episodes_left(folder: Path, episodes: int) -> int:
+    """The episodes an evaluation into `folder` still has to run: those its journal lacks (at least one, so
+    that a finished evaluation's command still gets a worker to write its report)."""
+    journal = folder / "episodes.jsonl"
+    return max(1, episodes - len(read_journal(journal)[1])) if journal.exists() else episodes
+
+
 def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[str, list[str]]]:
     """(phase, argv) for every command of these phases, in the order they run."""
     rvt2, out, workers = list(settings.rvt2), settings.out, str(settings.workers)
@@ -199,9 +207,10 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
             runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate)]
-            shares = share_workers(settings.workers, [episodes for _, _, episodes, _, _ in runs])
-            for (seed, name, episodes, first_seed, extra_options), share in zip(runs, shares):
-                folder = out / "evals" / f"seed{seed}{name}"
+            folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
+            shares = share_workers(settings.workers, [episodes_left(folder, episodes * len(experiment["tasks"]))
+                                                      for folder, (_, _, episodes, _, _) in zip(folders, runs)])
+            for (seed, name, episodes, first_seed, extra_options), folder, share in zip(runs, folders, shares):
                 resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
                                            "--episodes", str(episodes), "--seed", str(first_seed), "--workers", str(share),

@@ -1,6 +1,7 @@
 """experiments/*.toml through benchmarks/experiment.py: every command an experiment file turns into is
 one the real `rvt2` parsers accept, so a renamed or removed option fails here, not on a GPU machine."""
 
+import gzip
 import json
 import sys
 from pathlib import Path
@@ -61,6 +62,19 @@ def test_evaluation_ranges_and_extra_evaluations(tmp_path):
     assert [(a.seed, a.episodes, Path(a.out).name, a.paraphrases, a.workers) for a in evals] == [
         (10000, 50, "seed0_from10000", False, 20), (10050, 50, "seed0_from10050", False, 20),
         (10000, 50, "seed0_paraphrases", True, 20)]   # run at the same time, the workers shared
+
+
+def test_an_interrupted_evaluation_resumes_with_workers_for_the_episodes_it_has_left(tmp_path):
+    """rvt2_18's first range, 367 of its 900 episodes run (the journal the GPU machine left): it resumes, and
+    the three evaluations share 60 workers as 533 : 900 : 900 episodes."""
+    journal = tmp_path / "evals" / "seed0_from10000" / "episodes.jsonl"
+    journal.parent.mkdir(parents=True)
+    preview = runner.REPOSITORY / "benchmarks/results/rvt2_18_h100x4/eval_preview/episodes.jsonl.gz"
+    journal.write_bytes(gzip.decompress(preview.read_bytes()))
+    run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=60))
+    evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
+    assert [(Path(a.out).name, a.workers, a.resume) for a in evals] == [
+        ("seed0_from10000", 14, True), ("seed0_from10050", 23, False), ("seed0_paraphrases", 23, False)]
 
 
 def test_workers_are_shared_in_proportion_to_episodes():
