@@ -53,6 +53,18 @@ def timer(device):
     return time.perf_counter()
 
 
+def median_time_ms(fn, device, repeats: int, warmup: int = 3) -> float:
+    """The median of `repeats` timed calls of `fn`, after `warmup` untimed ones (the GPU synchronised)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = timer(device)
+        fn()
+        times.append(timer(device) - start)
+    return 1000 * statistics.median(times)
+
+
 def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int, compile: bool = False,
                      eight_bit: bool = True, profile: str | None = None) -> dict:
     """The training step `rvt2 train` runs (rvt2cli.train.step.TrainStep), on one synthetic batch."""
@@ -128,14 +140,7 @@ def inference_latency(cfg, device, points: int, repeats: int, compile: bool = Fa
         return pred.position, pred.rot_bins, pred.gripper_open, pred.ignore_collisions
 
     def median_ms(fn) -> float:
-        for _ in range(3):
-            fn()
-        times = []
-        for _ in range(repeats):
-            start = timer(device)
-            fn()
-            times.append(timer(device) - start)
-        return 1000 * statistics.median(times)
+        return median_time_ms(fn, device, repeats)
 
     result = {"config": cfg.name, "points": points, "compiled": compile, "eager_ms": median_ms(eager)}
     result["eager_fps"] = 1000 / result["eager_ms"]
