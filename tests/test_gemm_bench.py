@@ -1,5 +1,6 @@
 """benchmarks/gemm_bench.py finds the matrix products the policy's forward really runs."""
 
+import pytest
 import torch
 
 from benchmarks import gemm_bench
@@ -29,3 +30,18 @@ def test_the_bench_times_every_shape_and_sums_a_step(tmp_path):
     assert results["per_step"]["bf16_ms"] > 0 and all(r["bf16_ms"] > 0 and r["count"] >= 1 for r in results["shapes"])
     assert "fp8_ms" not in results["per_step"]   # FP8 products need a Hopper GPU
     assert (tmp_path / "g.json").exists()
+
+
+def test_the_fp8_operands_it_times_compute_the_bf16_product():
+    """The casts, scales and layouts handed to `torch._scaled_mm` give the product in bf16, within what
+    e4m3 and e5m2 keep (3 and 2 mantissa bits); a wrong scale or layout would be far off."""
+    for a, b, left, right in gemm_bench._three_products(64, 32, 48, torch.device("cpu")):
+        (qa, sa), (qb, sb) = gemm_bench._to_float8(a, left), gemm_bench._to_float8(b.t().contiguous(), right)
+        try:
+            got = torch._scaled_mm(qa, qb.t(), scale_a=sa, scale_b=sb, out_dtype=torch.bfloat16).float()
+        except (RuntimeError, NotImplementedError):
+            pytest.skip("this torch has no FP8 products on the CPU")
+        want = a.float() @ b.float()
+        assert got.shape == want.shape
+        assert (got - want).abs().max() < 0.15 * want.abs().max()
+        assert torch.corrcoef(torch.stack([got.flatten(), want.flatten()]))[0, 1] > 0.99
