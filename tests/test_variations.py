@@ -115,6 +115,39 @@ def test_training_samples_carry_their_own_variations_instruction(slide_demos):
     assert len(set(samples.instruction_index)) == 4
 
 
+def test_instruction_swap_scores_each_observation_under_every_variations_words(slide_demos, tmp_path):
+    """benchmarks/instruction_swap.py on four real slide_block demos and a policy trained on them briefly: every
+    observation is predicted under its own instruction and the three other colours'; the own instruction's
+    error is the one `rvt2 eval --offline` measures on the same demos."""
+    from conftest import TINY_TRAIN
+
+    from benchmarks.instruction_swap import alternatives, swap_report
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.eval.offline import evaluate_offline
+    from rvt2cli.keyframes.extract import extract_file
+    from rvt2cli.train.trainer import TrainOptions, train
+
+    own = get_task(TASK).instruction(0, 0)[0]
+    swapped = alternatives(TASK, own)
+    assert swapped[0] == own and len(set(swapped)) == 4   # the same template in the four colours
+    assert alternatives(TASK, "a phrasing the task does not have") == ["a phrasing the task does not have"]
+    for path in episode_paths([str(slide_demos)]):
+        extract_file(path)
+    train(TrainOptions(data=[str(slide_demos)], out=str(tmp_path / "run"), steps=4, save_every=4, **TINY_TRAIN),
+          say=lambda *_: None)
+    report = swap_report(str(tmp_path / "run"), [str(slide_demos)], decides_mm=20.0)
+    offline = evaluate_offline(str(tmp_path / "run"), [str(slide_demos)], progress=False)["tasks"][TASK]
+    assert {r["keyframe"] for r in report["rows"]} == {int(k) for k in offline["keyframes"]}
+    starts = {r["keyframe"]: r for r in report["rows"] if r["start"]}
+    assert starts.keys() == {int(k) for k in offline["start_keyframes"]}
+    for keyframe, row in starts.items():
+        assert row["error_mm"] == pytest.approx(offline["start_keyframes"][str(keyframe)]["stage2_mm"]["median"], abs=0.05)
+    for row in report["rows"]:
+        assert row["task"] == TASK and row["alternatives"] == 3 and row["moved_mm"] >= 0
+        assert all(len(others) == 3 for others in row["others_mm"])
+        assert (row["chosen"] is None) == (row["deciding"] == 0)
+
+
 def test_record_one_variation(tmp_path):
     summary = record(TASK, 2, tmp_path, seed=10, options=RecordOptions(**{**SMALL.__dict__, "variations": "3"}))
     assert summary.successes_per_variation() == {3: 2}

@@ -1,0 +1,137 @@
+"""Does the instruction decide where the policy goes? Recorded demos, each observation predicted under its own
+instruction and under every other variation's (the same template), without a simulator.
+
+    python -m benchmarks.instruction_swap --checkpoint RUN DEMOS... [--device cuda] [--json FILE]
+
+On rvt2-18 only the instruction tells a task's variations apart (which colour, which object, which slot). A
+closed-loop `wrong_target` failure is either the policy not reading the words (its prediction barely moves
+when they change) or it reading them and going wrong anyway. Per task and keyframe index, the observations
+at the previous keyframe ("start": what a closed loop sees) apart from those on the way:
+
+- `error_mm`: the own instruction's stage-2 error against the demo's next keyframe (as `rvt2 eval --offline`);
+- `moved_mm`: how far the other instructions move the prediction (median over observations of the median
+  distance from the own instruction's prediction);
+- `deciding`: observations whose predictions spread over more than --decides-mm (the words choose a place
+  there; elsewhere every variation goes to the same place, such as grasping the one block), and `chosen`:
+  the share of those where the own instruction's prediction is the one nearest the demo's keyframe (within
+  5 mm of the nearest: two variations may rightly share a place).
+"""
+
+import argparse
+import dataclasses
+import json
+from collections import defaultdict
+
+import numpy as np
+import torch
+
+from rvt2cli.data.paths import episode_paths
+from rvt2cli.eval.offline import DEFAULT_MAX_POINTS, _cameras
+from rvt2cli.model.language import InstructionCache
+from rvt2cli.tasks import get_task
+from rvt2cli.train.batches import make_batch, pack
+from rvt2cli.train.checkpoint import load_policy
+from rvt2cli.train.samples import load_samples
+
+
+def alternatives(task_name: str, instruction: str) -> list[str]:
+    """The instruction first, then the same template filled with each other variation's values."""
+    task = get_task(task_name)
+    for template in task.instructions:
+        texts = [template.format(**task.variation_values(v)) for v in range(task.num_variations)]
+        if instruction in texts:
+            return [instruction] + [t for t in dict.fromkeys(texts) if t != instruction]
+    return [instruction]   # not one of the task's own phrasings (a paraphrase): nothing to swap
+
+
+def predicted_positions(policy, packed, batch_size: int, autocast: bool) -> np.ndarray:
+    """Stage-2 positions (metres, world frame) the policy predicts for every packed sample."""
+    out = []
+    policy.eval()
+    for start in range(0, len(packed), batch_size):
+        idx = np.arange(start, min(start + batch_size, len(packed)))
+        batch = make_batch(packed, idx, policy.cfg)
+        with torch.no_grad(), torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=autocast):
+            pred = policy.predict(batch.obs)
+        tasks = packed.task[idx]
+        out.append(pred.position.float().cpu().numpy() * packed.half[tasks][:, None] + packed.center[tasks])
+    return np.concatenate(out)
+
+
+def swap_report(checkpoint: str, demos, device: str = "cpu", batch_size: int = 8, decides_mm: float = 20.0,
+                near_mm: float = 5.0) -> dict:
+    policy, ckpt = load_policy(checkpoint, device=device)
+    paths = episode_paths(list(demos))
+    samples = load_samples(paths, include_failures=True, progress=False, cameras=_cameras(ckpt))
+    options = ckpt.info.get("options") or {}
+    max_points = int(options.get("max_points") or DEFAULT_MAX_POINTS)
+    # every sample once per alternative instruction: row r of rounds[k] is sample r under its k-th alternative
+    choices = [alternatives(samples.tasks[samples.task_index[i]], samples.instructions[samples.instruction_index[i]])
+               for i in range(len(samples))]
+    texts = sorted({t for c in choices for t in c})
+    lang = InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(texts)
+    base = pack(samples, list(range(len(samples))), lang, max_points, torch.device(device), seed=0,
+                aim_offsets=ckpt.aim_offsets)
+    autocast = torch.device(device).type == "cuda"
+    most = max(len(c) for c in choices)
+    positions = np.full((most, len(samples), 3), np.nan)
+    for k in range(most):   # round k: every sample under its k-th instruction (its own where it has fewer)
+        instruction = torch.as_tensor([texts.index(c[min(k, len(c) - 1)]) for c in choices], device=base.instruction.device)
+        predicted = predicted_positions(policy, dataclasses.replace(base, instruction=instruction), batch_size, autocast)
+        has = [i for i, c in enumerate(choices) if k < len(c)]
+        positions[k, has] = predicted[has]
+    target = base.target_position
+    own = positions[0]
+    error = np.linalg.norm(own - target, axis=-1) * 1000
+    moved = np.linalg.norm(positions[1:] - own[None], axis=-1) * 1000          # [alternatives, samples]
+    to_target = np.linalg.norm(positions - target[None], axis=-1) * 1000       # [alternatives + 1, samples]
+    spread = np.nanmax(moved, axis=0, initial=0.0)
+    groups = defaultdict(list)
+    for i in range(len(samples)):   # observations at a keyframe (what a closed loop sees) apart from those between
+        groups[(samples.tasks[samples.task_index[i]], int(samples.keyframe_index[i]), bool(samples.keyframe_start[i]))].append(i)
+    rows = []
+    for (task, keyframe, start), members in sorted(groups.items()):
+        deciding = [i for i in members if spread[i] > decides_mm]
+        rows.append({"task": task, "keyframe": keyframe, "start": start, "samples": len(members),
+                     "alternatives": len(choices[members[0]]) - 1,
+                     "error_mm": float(np.median(error[members])),
+                     "moved_mm": float(np.median([np.nanmedian(moved[:, i]) for i in members])) if most > 1 else 0.0,
+                     "deciding": len(deciding),
+                     "chosen": (float(np.mean([to_target[0, i] <= np.nanmin(to_target[1:, i]) + near_mm for i in deciding]))
+                                if deciding else None),
+                     "own_mm": [float(error[i]) for i in members],
+                     "others_mm": [[float(d) for d in to_target[1:, i]] for i in members]})
+    return {"checkpoint": str(ckpt.path), "episodes": len(paths), "decides_mm": decides_mm, "rows": rows}
+
+
+def markdown(report: dict) -> str:
+    lines = [f"instruction swap: {report['checkpoint']}, {report['episodes']} episodes; deciding: predictions "
+             f"spread over {report['decides_mm']:.0f} mm", "",
+             "| task | keyframe | samples | other instructions | error mm | moved mm | deciding | own nearest |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in report["rows"]:
+        chosen = "-" if r["chosen"] is None else f"{r['chosen']:.0%}"
+        lines.append(f"| {r['task']} | {r['keyframe']}{' start' if r['start'] else ''} | {r['samples']} | {r['alternatives']} | {r['error_mm']:.1f} | "
+                     f"{r['moved_mm']:.1f} | {r['deciding']} | {chosen} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("demos", nargs="+", help="demo files or folders")
+    parser.add_argument("--checkpoint", required=True)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--decides-mm", type=float, default=20.0)
+    parser.add_argument("--json")
+    args = parser.parse_args(argv)
+    report = swap_report(args.checkpoint, args.demos, args.device, args.batch_size, args.decides_mm)
+    print(markdown(report), end="")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=2)
+    return report
+
+
+if __name__ == "__main__":
+    main()
