@@ -1,4 +1,4 @@
-"""All speed benchmarks on the current machine: renderer, recording, training, inference and bag import.
+"""All speed benchmarks on the current machine: renderer, recording, training, the matrix products, inference and bag import.
 
     python -m benchmarks.run_all [--quick] [--out benchmarks/results/NAME]
 
@@ -26,6 +26,7 @@ def main() -> None:
     quick = ["--quick"] if args.quick else []
     runs = [("render", ["benchmarks.render_bench", "--device", device]),
             ("policy", ["benchmarks.policy_bench", "--device", device]),
+            ("gemm", ["benchmarks.gemm_bench", "--device", device]),
             ("rosbag", ["benchmarks.rosbag_bench"])]
     if not args.skip_record:
         runs.append(("record", ["benchmarks.record_bench"]))

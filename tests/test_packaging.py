@@ -32,6 +32,6 @@ def test_benchmarks_run_in_a_tiny_configuration(tmp_path):
     r = subprocess.run([sys.executable, "-m", "benchmarks.run_all", "--quick", "--out", str(tmp_path)], cwd=ROOT,
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
-    for name in ("render", "policy", "record"):
+    for name in ("render", "policy", "gemm", "record"):
         assert json.loads((tmp_path / f"{name}.json").read_text())
     assert "## policy" in (tmp_path / "summary.md").read_text()
