@@ -29,8 +29,9 @@ from rvt2cli.data.paths import episode_paths
 from rvt2cli.eval.offline import DEFAULT_MAX_POINTS, _cameras
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.tasks import get_task
-from rvt2cli.train.batches import make_batch, pack
+from rvt2cli.train.batches import pack
 from rvt2cli.train.checkpoint import load_policy
+from rvt2cli.train.metrics import predict_batches
 from rvt2cli.train.samples import load_samples
 
 
@@ -47,14 +48,10 @@ def alternatives(task_name: str, instruction: str) -> list[str]:
 def predicted_positions(policy, packed, batch_size: int, autocast: bool) -> np.ndarray:
     """Stage-2 positions (metres, world frame) the policy predicts for every packed sample."""
     out = []
-    policy.eval()
-    for start in range(0, len(packed), batch_size):
-        idx = np.arange(start, min(start + batch_size, len(packed)))
-        batch = make_batch(packed, idx, policy.cfg)
-        with torch.no_grad(), torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=autocast):
-            pred = policy.predict(batch.obs)
-        tasks = packed.task[idx]
-        out.append(pred.position.float().cpu().numpy() * packed.half[tasks][:, None] + packed.center[tasks])
+    with torch.no_grad():
+        for idx, _, pred in predict_batches(policy, packed, batch_size=batch_size, autocast=autocast):
+            tasks = packed.task[idx]
+            out.append(pred.position.float().cpu().numpy() * packed.half[tasks][:, None] + packed.center[tasks])
     return np.concatenate(out)
 
 
@@ -65,7 +62,7 @@ def swap_report(checkpoint: str, demos, device: str = "cpu", batch_size: int = 8
     samples = load_samples(paths, include_failures=True, progress=False, cameras=_cameras(ckpt))
     options = ckpt.info.get("options") or {}
     max_points = int(options.get("max_points") or DEFAULT_MAX_POINTS)
-    # every sample once per alternative instruction: row r of rounds[k] is sample r under its k-th alternative
+    # each sample's instructions, its own first: positions[k, r] is sample r predicted under its k-th
     choices = [alternatives(samples.tasks[samples.task_index[i]], samples.instructions[samples.instruction_index[i]])
                for i in range(len(samples))]
     texts = sorted({t for c in choices for t in c})
@@ -75,8 +72,9 @@ def swap_report(checkpoint: str, demos, device: str = "cpu", batch_size: int = 8
     autocast = torch.device(device).type == "cuda"
     most = max(len(c) for c in choices)
     positions = np.full((most, len(samples), 3), np.nan)
+    slot = {text: i for i, text in enumerate(texts)}   # a text's row in `lang`
     for k in range(most):   # round k: every sample under its k-th instruction (its own where it has fewer)
-        instruction = torch.as_tensor([texts.index(c[min(k, len(c) - 1)]) for c in choices], device=base.instruction.device)
+        instruction = torch.as_tensor([slot[c[min(k, len(c) - 1)]] for c in choices], device=base.instruction.device)
         predicted = predicted_positions(policy, dataclasses.replace(base, instruction=instruction), batch_size, autocast)
         has = [i for i, c in enumerate(choices) if k < len(c)]
         positions[k, has] = predicted[has]

@@ -43,20 +43,27 @@ class Scores:
 
 
 @torch.no_grad()
-def score_predictions(policy, packed: PackedSamples, indices=None, batch_size: int = 8, autocast: bool = False,
-                      progress=None) -> Scores:
-    """Run the policy on every sample (no augmentation) and measure its errors. `progress(n)` is called
-    after each batch with the number of samples done in it."""
-    cfg = policy.cfg
+def predict_batches(policy, packed: PackedSamples, indices=None, batch_size: int = 8, autocast: bool = False):
+    """(indices, batch, prediction) for the packed samples at `indices` (all by default), `batch_size` at a
+    time, the policy in eval mode (no augmentation) and put back as it was when the last batch is done."""
     indices = np.arange(len(packed)) if indices is None else np.asarray(indices)
-    parts: dict[str, list] = {f: [] for f in Scores.__dataclass_fields__}
     was_training = policy.training
     policy.eval()
     for start in range(0, len(indices), batch_size):
         idx = indices[start:start + batch_size]
-        batch = make_batch(packed, idx, cfg)
+        batch = make_batch(packed, idx, policy.cfg)
         with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=autocast):
             pred = policy.predict(batch.obs)
+        yield idx, batch, pred
+    policy.train(was_training)
+
+
+def score_predictions(policy, packed: PackedSamples, indices=None, batch_size: int = 8, autocast: bool = False,
+                      progress=None) -> Scores:
+    """Run the policy on every sample (no augmentation) and measure its errors. `progress(n)` is called
+    after each batch with the number of samples done in it."""
+    parts: dict[str, list] = {f: [] for f in Scores.__dataclass_fields__}
+    for idx, batch, pred in predict_batches(policy, packed, indices, batch_size, autocast):
         metres = batch.half[:, None] * 1000.0
         parts["stage1_mm"].append((pred.stage1_position.float() - batch.tcp_position).norm(dim=-1).cpu().numpy() * metres[:, 0])
         parts["stage2_mm"].append((pred.position.float() - batch.tcp_position).norm(dim=-1).cpu().numpy() * metres[:, 0])
@@ -69,7 +76,6 @@ def score_predictions(policy, packed: PackedSamples, indices=None, batch_size: i
         parts["start"].append(packed.keyframe_start[idx])
         if progress:
             progress(len(idx))
-    policy.train(was_training)
     return Scores(**{k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items()})
 
 
