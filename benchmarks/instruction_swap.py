@@ -91,7 +91,7 @@ def swap_report(checkpoint: str, demos, device: str = "cpu", batch_size: int = 8
     for (task, keyframe, start), members in sorted(groups.items()):
         deciding = [i for i in members if spread[i] > decides_mm]
         rows.append({"task": task, "keyframe": keyframe, "start": start, "samples": len(members),
-                     "alternatives": len(choices[members[0]]) - 1,
+                     "alternatives": max(len(choices[i]) for i in members) - 1,   # 0 for a phrasing naming no value
                      "error_mm": float(np.median(error[members])),
                      "moved_mm": float(np.median([np.nanmedian(moved[:, i]) for i in members])) if most > 1 else 0.0,
                      "deciding": len(deciding),

@@ -21,6 +21,7 @@ import json
 import tomllib
 from pathlib import Path
 
+from rvt2cli.eval.journal import read_journal
 from rvt2cli.eval.report import build_report, wilson_interval
 
 
@@ -28,11 +29,19 @@ def load_policy(dirs: str) -> dict:
     """One report from one or more eval folders (their episodes merged)."""
     records, seeds = [], []
     for folder in dirs.split("+"):
-        report = json.loads((Path(folder) / "eval.json").read_text())
-        records += [e for e in report["episodes"] if e["source"] == "policy"]
-        seeds.append(report["seed"])
+        plan, episodes = read_journal(journal_of(Path(folder)))
+        records += [e for e in episodes if e["source"] == "policy"]
+        seeds.append(plan["seed"])
     per_task = len({r["seed"] for r in records if r["task"] == records[0]["task"]})
     return build_report(records, {"seed": min(seeds), "episodes_per_task": per_task})
+
+
+def journal_of(folder: Path) -> Path:
+    """An eval folder's journal: `rvt2 eval`'s episodes.jsonl, or the gzip copy kept in benchmarks/results."""
+    for name in ("episodes.jsonl", "episodes.jsonl.gz"):
+        if (folder / name).exists():
+            return folder / name
+    raise SystemExit(f"results_table: {folder} has no episodes.jsonl(.gz); give an `rvt2 eval --out` folder")
 
 
 def load_models(models: str) -> list[dict]:
@@ -105,7 +114,8 @@ def from_oracle_bench(path: str) -> tuple[dict, dict]:
 
 
 def from_eval_and_record(oracle_dir: str, expert_path: str) -> tuple[dict, dict]:
-    report = json.loads((Path(oracle_dir) / "eval.json").read_text())
+    plan, episodes = read_journal(journal_of(Path(oracle_dir)))
+    report = build_report([e for e in episodes if e["source"] == "oracle"], {"seed": plan["seed"]})
     expert_json = json.loads(Path(expert_path).read_text())
     oracle = {t: _rate(v["oracle"]["successes"], v["oracle"]["episodes"]) for t, v in report["tasks"].items()}
     expert = {e["task"]: _rate(round(e["success"] * e["seeds"]), e["seeds"]) for e in expert_json["expert"]}
@@ -159,13 +169,15 @@ def chart(results: dict, path: Path) -> None:
 
     tasks = [r["task"] for r in results["rows"]]
     series = [(label, [r["policies"][label]["rate"] for r in results["rows"]]) for label in results["labels"]]
+    series += [(paper, [(r["papers"][paper] or {"mean": np.nan})["mean"] / 100 for r in results["rows"]])
+               for paper in results.get("papers", [])]
     series += [("oracle", [r["oracle"]["rate"] for r in results["rows"]]), ("expert", [r["expert"]["rate"] for r in results["rows"]])]
     width = 0.8 / len(series)
     x = np.arange(len(tasks))
-    fig, ax = plt.subplots(figsize=(12, 4.2))
+    fig, ax = plt.subplots(figsize=(max(12, 0.75 * len(tasks)), 4.8))
     for i, (label, rates) in enumerate(series):
         ax.bar(x + (i - (len(series) - 1) / 2) * width, [100 * v for v in rates], width, label=label)
-    ax.set_xticks(x, tasks, rotation=15)
+    ax.set_xticks(x, tasks, rotation=30 if len(tasks) > 8 else 15, ha="right" if len(tasks) > 8 else "center")
     ax.set_ylabel("success (%)")
     ax.set_ylim(0, 115)
     ax.set_title(f"Closed-loop success on unseen seeds (from {results['seeds'].split('-')[0]}; episodes per task in docs/RESULTS.md)")
@@ -186,6 +198,8 @@ def main() -> None:
     parser.add_argument("--chart")
     parser.add_argument("--json")
     args = parser.parse_args()
+    if not args.oracle_bench and not (args.oracle and args.expert):
+        parser.error("give the oracle and expert columns: --oracle-bench ORACLE_JSON, or --oracle EVAL_DIR with --expert RECORD_JSON")
     policies = {label: load_models(models) for label, models in (p.split("=", 1) for p in args.policy)}
     if args.oracle_bench:
         oracle, expert = from_oracle_bench(args.oracle_bench)

@@ -65,12 +65,13 @@ def test_evaluation_ranges_and_extra_evaluations(tmp_path):
 
 
 def test_an_interrupted_evaluation_resumes_with_workers_for_the_episodes_it_has_left(tmp_path):
-    """rvt2_18's first range, 367 of its 900 episodes run (the journal the GPU machine left): it resumes, and
-    the three evaluations share 60 workers as 533 : 900 : 900 episodes."""
+    """rvt2_18's first range as the first GPU machine left it, 367 of its 900 episodes run (the first lines of
+    the published journal, which resumed it): it resumes, and the three evaluations share 60 workers as
+    533 : 900 : 900 episodes."""
     journal = tmp_path / "evals" / "seed0_from10000" / "episodes.jsonl"
     journal.parent.mkdir(parents=True)
-    preview = runner.REPOSITORY / "benchmarks/results/rvt2_18_h100x4/eval_preview/episodes.jsonl.gz"
-    journal.write_bytes(gzip.decompress(preview.read_bytes()))
+    published = runner.REPOSITORY / "benchmarks/results/rvt2_18_h100x4/evals/seed0_from10000/episodes.jsonl.gz"
+    journal.write_text("".join(gzip.decompress(published.read_bytes()).decode().splitlines(keepends=True)[:1 + 367]))
     run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=60))
     evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
     assert [(Path(a.out).name, a.workers, a.resume) for a in evals] == [

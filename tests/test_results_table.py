@@ -48,3 +48,26 @@ def test_a_table_beside_the_paper_from_a_real_journal():
 def test_an_unknown_model_is_one_line():
     with pytest.raises(SystemExit, match="has no model 'rvt3'; give FILE#MODEL with one of: rvt2, rvt, peract"):
         results_table.load_paper(f"{PAPER}#rvt3")
+
+
+def test_two_published_ranges_are_one_evaluation_of_100_seeds_per_task():
+    """rvt2-18's two ranges of 50 seeds, read from the gzip journals kept in benchmarks/results (no eval.json
+    there), joined with + into one report whose counts are the journals' own."""
+    evals = REPOSITORY / "benchmarks" / "results" / "rvt2_18_h100x4" / "evals"
+    ranges = [evals / "seed0_from10000", evals / "seed0_from10050"]
+    [report] = results_table.load_models("+".join(map(str, ranges)))
+    records = [json.loads(line) for folder in ranges
+               for line in gzip.open(folder / "episodes.jsonl.gz", "rt").read().splitlines()[1:]]
+    assert report["seed"] == 10000 and report["episodes_per_task"] == 100
+    for task in tasks_of_set("rlbench18"):
+        mine = [r for r in records if r["task"] == task]
+        assert len(mine) == 100 and len({r["seed"] for r in mine}) == 100
+        assert report["tasks"][task]["policy"]["successes"] == sum(r["success"] for r in mine)
+
+
+def test_a_table_without_oracle_and_expert_columns_is_refused_in_one_line(monkeypatch, capsys, tmp_path):
+    monkeypatch.setattr("sys.argv", ["results_table", "--policy", f"x={tmp_path}", "--oracle", str(tmp_path)])
+    with pytest.raises(SystemExit) as exit_:
+        results_table.main()
+    assert exit_.value.code == 2
+    assert "give the oracle and expert columns" in capsys.readouterr().err

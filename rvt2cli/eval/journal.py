@@ -7,6 +7,7 @@ the episodes the journal does not have yet.
     line 2..   one episode record (rvt2cli.eval.report.episode_record)
 """
 
+import gzip
 import json
 import os
 from pathlib import Path
@@ -23,8 +24,10 @@ def episode_key(record: dict) -> tuple[str, str, int]:
 
 
 def read_journal(path: Path) -> tuple[dict, list[dict]]:
-    """(plan, episode records) of a journal; a last line cut off by a kill is left out."""
-    lines = path.read_text().split("\n")[:-1]  # what follows the last newline is an unfinished line
+    """(plan, episode records) of a journal (or of its gzip copy, as kept with published results); a last line
+    cut off by a kill is left out."""
+    text = gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
+    lines = text.split("\n")[:-1]  # what follows the last newline is an unfinished line
     try:
         plan = json.loads(lines[0])["plan"]
     except (IndexError, json.JSONDecodeError, KeyError, TypeError):
