@@ -8,6 +8,8 @@ import pytest
 import torch
 
 from conftest import TINY_TRAIN, assert_one_line_error
+from rvt2cli.cli import build_parser
+from rvt2cli.cli.train import options_from
 from rvt2cli.errors import UserError
 from rvt2cli.train.checkpoint import load_checkpoint, load_policy
 from rvt2cli.train.metrics import prediction_errors
@@ -57,6 +59,32 @@ def test_resume_reproduces_the_same_losses(tiny_dataset, tmp_path):
     a = load_checkpoint(tmp_path / "a").weights
     c = load_checkpoint(tmp_path / "c").weights
     assert all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_a_time_limit_saves_and_stops_and_resume_finishes_the_same_run(tiny_dataset, tmp_path, cli):
+    """--time-limit stops at the first look after the limit (here every 3 steps, the limit already past), with a
+    checkpoint there although --save-every is 6; --resume, without the limit, ends as the run that never
+    stopped: the same losses and weights. The command says how to continue and exits 75."""
+    opts = dict(data=[str(tiny_dataset)], steps=6, save_every=6, log_every=3, **TINY_TRAIN)
+    straight = train(TrainOptions(out=str(tmp_path / "a"), **opts), say=lambda *_: None)
+    said = []
+    stopped = train(TrainOptions(out=str(tmp_path / "b"), time_limit=1e-9, **opts), say=said.append)
+    assert stopped.out_of_time and stopped.steps == 3
+    assert json.loads((tmp_path / "b" / "run.json").read_text())["out_of_time"] is True
+    assert (tmp_path / "b" / "last").read_text().strip() == "checkpoints/step_0000003"
+    assert any("--resume" in line for line in said)
+    resumed = train(TrainOptions(out=str(tmp_path / "b"), resume=True, **opts), say=lambda *_: None)
+    assert not resumed.out_of_time and resumed.steps == 6
+    assert stopped.losses + resumed.losses == straight.losses
+    a, b = load_checkpoint(tmp_path / "a").weights, load_checkpoint(tmp_path / "b").weights
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+    r = cli("train", "--data", tiny_dataset, "--out", tmp_path / "c", "--config", "small", "--steps", "4",
+            "--log-every", "2", "--val-episodes", "0", "--max-points", "20000", "--time-limit", "1e-9", "--no-progress")
+    assert r.returncode == 75, r.stderr[-2000:]
+    assert f"Continue with: rvt2 train --out {tmp_path / 'c'} --resume" in r.stdout
+    resume = build_parser().parse_args(["train", "--out", str(tmp_path / "c"), "--resume"])
+    assert options_from(resume).time_limit is None   # the limit was the command's, not the run's
 
 
 def test_resume_with_another_config_is_refused(tiny_checkpoint, tiny_dataset):

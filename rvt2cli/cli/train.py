@@ -1,8 +1,18 @@
 """`rvt2 train`: train an RVT-2 policy on annotated episodes (also under torchrun for several GPUs)."""
 
 import argparse
+import os
 
 from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names, number, weights
+
+
+OUT_OF_TIME = 75   # sysexits' EX_TEMPFAIL: stopped at --time-limit, not finished; run again with --resume
+
+
+def exit_code(out_of_time: bool) -> int:
+    """75 for a run stopped at --time-limit; 0 under torchrun, whose agent reports any other code as a failed
+    worker (run.json's `out_of_time` says it there)."""
+    return OUT_OF_TIME if out_of_time and "LOCAL_RANK" not in os.environ else 0
 
 
 def register(subparsers) -> None:
@@ -47,6 +57,10 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=SEED, help=f"(default {T.seed})")
     p.add_argument("--device", help="auto (default), cpu, cuda, cuda:N")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint, with its options")
+    p.add_argument("--time-limit", type=POSITIVE, metavar="MINUTES",
+                   help="save a checkpoint and stop once this many minutes have passed since the command started "
+                        "(a cluster job's or a rented machine's time; leave a minute for the save); exit code 75 (0 "
+                        "under torchrun, with out_of_time in run.json), and --resume continues exactly where it stopped")
     p.add_argument("--save-every", type=COUNT, help=f"steps between checkpoints (default {T.save_every})")
     p.add_argument("--val-every", type=COUNT, help=f"steps between validations (default {T.val_every})")
     p.add_argument("--log-every", type=COUNT, help=f"steps between log rows (default {T.log_every})")
@@ -87,21 +101,19 @@ def options_from(args) -> "TrainOptions":  # noqa: F821 - imported lazily
         from rvt2cli.train.trainer import stored_options
 
         stored = stored_options(Path(args.out))
-        if stored is not None:
-            return TrainOptions(**{**stored.__dict__, **given})
+        if stored is not None:  # a time limit belongs to the command that gave it, not to the run
+            return TrainOptions(**{**stored.__dict__, "time_limit": None, **given})
     if "data" not in given:
         raise UserError("train needs --data (episode files or folders, or a sample cache)")
     return TrainOptions(**given)
 
 
 def run(args) -> int:
-    import os
-
     from rvt2cli.train.trainer import describe_terms, train
 
     result = train(options_from(args))
     if int(os.environ.get("RANK", "0")) != 0:  # one summary for a several-GPU run, from the process that saves
-        return 0
+        return exit_code(result.out_of_time)
     v = result.last_validation
     print(f"trained {result.steps} steps in {result.seconds:.0f} s; checkpoint: {result.run_dir}/last"
           + (f"; validation: stage-2 error {v['translation_mm_median']:.1f} mm median, {v['rotation_deg_median']:.1f} deg, "
@@ -109,4 +121,4 @@ def run(args) -> int:
           + (f"; {result.skipped_steps} non-finite steps skipped" if result.skipped_steps else "")
           # the terms of this call's skipped steps (a resumed run's count includes the steps before it)
           + (f" (not finite: {describe_terms(result.skipped_terms)})" if result.skipped_terms else ""))
-    return 0
+    return exit_code(result.out_of_time)

@@ -46,6 +46,7 @@ class TrainOptions:
     eight_bit: bool = True
     render_backend: str = "warp"
     progress: bool = True
+    time_limit: float | None = None  # minutes from the command's start: save a checkpoint and stop (--resume continues)
 
     def to_json(self) -> dict:
         d = asdict(self)

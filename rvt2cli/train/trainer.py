@@ -57,6 +57,20 @@ class TrainResult:
     seconds: float = 0.0
     samples_per_s: float | None = None   # the loop's throughput after its first logged interval
     packed: object = field(default=None, repr=False)  # the packed training samples (for inspection)
+    out_of_time: bool = False            # stopped at --time-limit before the last step, a checkpoint saved
+
+
+def out_of_time(started: float, limit_minutes: float | None, world: int, device) -> bool:
+    """Whether --time-limit is up. Every process asks at the same steps; under DDP they stop together as soon
+    as any one's clock says so (the processes started at slightly different times)."""
+    if limit_minutes is None:
+        return False
+    late = time.perf_counter() - started >= 60.0 * limit_minutes
+    if world > 1:
+        flag = torch.tensor([float(late)], device=device)
+        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+        late = bool(flag.item())
+    return late
 
 
 def pick_device(name: str) -> torch.device:
@@ -586,6 +600,8 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
             save = step % opts.save_every == 0 or step == opts.steps
             if step % opts.log_every == 0 or validate or save or step == opts.steps:
                 read_back()
+                if step < opts.steps and out_of_time(start_time, opts.time_limit, world, setup.device):
+                    result.out_of_time = save = True
             if validate and rank == 0:
                 with policy.eager():  # its batches have other sizes than the compiled training step's
                     scores = score_predictions(policy, data.packed_val, autocast=amp)
@@ -602,6 +618,10 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
                 checkpoint_state = state.save(world)  # every rank takes part (gathers the generators)
                 if rank == 0:
                     save_checkpoint(run_dir, step, policy, cfg, info, data.instructions.as_dict(), checkpoint_state)
+            if result.out_of_time:
+                say(f"--time-limit: {opts.time_limit:g} min reached at step {step} of {opts.steps}; checkpoint saved. "
+                    f"Continue with: rvt2 train --out {run_dir} --resume")
+                break
     finally:
         bar.close()
         if log:
@@ -610,6 +630,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
     result.seconds = time.perf_counter() - start_time
     result.packed = data.packed
     if rank == 0:
-        _write_run_json(run_dir, {"seconds": result.seconds, "samples_per_s": result.samples_per_s, "steps": result.steps})
+        _write_run_json(run_dir, {"seconds": result.seconds, "samples_per_s": result.samples_per_s, "steps": result.steps,
+                                  "out_of_time": result.out_of_time})
     return result
 
