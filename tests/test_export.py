@@ -70,3 +70,37 @@ def test_a_checkpoint_crosses_in_pieces_rounded_to_float16_or_exact(tiny_checkpo
             expected = value if exact or not value.is_floating_point() else value.half().float()
             assert torch.equal(weights[name], expected), name
         assert ("transfer" in json.loads((pieces / "config.json").read_text())) != exact
+
+
+def test_a_stopped_training_crosses_in_pieces_and_goes_on_there_as_if_never_stopped(tiny_dataset, tmp_path):
+    """gpu_checkpoint.py --resumable: a run stopped by --time-limit leaves one machine in pieces (its training
+    state and logs with it), is put back together in another folder, and `--resume` there ends at the weights
+    and losses of the run that never stopped. A checkpoint restored for evaluation has no training state: one
+    line, no pieces."""
+    import torch
+
+    from conftest import TINY_TRAIN
+    from rvt2cli.train.checkpoint import load_checkpoint
+    from rvt2cli.train.trainer import TrainOptions, train
+
+    script = Path(__file__).parent.parent / "scripts" / "offline-gpu-host" / "gpu_checkpoint.py"
+    opts = dict(data=[str(tiny_dataset)], steps=6, save_every=6, log_every=3, **TINY_TRAIN)
+    straight = train(TrainOptions(out=str(tmp_path / "a"), **opts), say=lambda *_: None)
+    stopped = train(TrainOptions(out=str(tmp_path / "b"), time_limit=1e-9, **opts), say=lambda *_: None)
+    pieces, elsewhere = tmp_path / "pieces", tmp_path / "elsewhere"
+    for command in (["shrink", str(tmp_path / "b"), str(pieces), "--resumable"], ["restore", str(pieces), str(elsewhere)]):
+        r = subprocess.run([sys.executable, str(script), *command], capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert "--resume" in r.stdout
+    resumed = train(TrainOptions(out=str(elsewhere), resume=True, **opts), say=lambda *_: None)
+    assert stopped.steps == 3 and stopped.losses + resumed.losses == straight.losses
+    a, c = load_checkpoint(tmp_path / "a").weights, load_checkpoint(elsewhere).weights
+    assert all(torch.equal(a[k], c[k]) for k in a)
+    assert [line.split(",")[0] for line in (elsewhere / "train.csv").read_text().splitlines()] == ["step", "3", "6"]
+
+    exact = tmp_path / "exact"
+    for command in (["shrink", str(tmp_path / "b"), str(exact), "--exact"], ["restore", str(exact), str(tmp_path / "for_eval")],
+                    ["shrink", str(tmp_path / "for_eval"), str(tmp_path / "again"), "--resumable"]):
+        r = subprocess.run([sys.executable, str(script), *command], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and "cannot be trained on" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "again").exists()

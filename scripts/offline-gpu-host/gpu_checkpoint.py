@@ -13,14 +13,19 @@ and on the machine that receives them, once every piece has come back into one f
 The weights travel as float16 (half the size) and are restored to float32; config.json records this.
 Training ran under bf16 autocast, so every matrix product already used weights rounded to 8 significant
 bits; float16 keeps 11. With --exact they travel as trained: an evaluation resumed on another machine
-then runs the very model its first episodes ran.
+then runs the very model its first episodes ran. With --resumable the training goes on elsewhere: the exact
+weights, the optimiser's and the generators' state (training_state.pt) and the run's logs (run.json,
+train.csv, validation.csv) travel, and `rvt2 train --out RUN_DIR --resume` there continues the schedule as
+if it had never stopped (a run stopped by `rvt2 train --time-limit`; the data must be at the same path).
 """
 
 import argparse
 import hashlib
+import io
 import json
 import shutil
 import sys
+import tarfile
 from pathlib import Path
 
 import torch
@@ -28,9 +33,10 @@ from safetensors.torch import load, load_file, save, save_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository root
 from rvt2cli.atomic import atomic_folder, atomic_open  # noqa: E402
-from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, WEIGHTS, resolve  # noqa: E402
+from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, STATE, WEIGHTS, resolve  # noqa: E402
 
 PIECE = 15 * 2**20
+RUN_LOGS = ("run.json", "train.csv", "validation.csv")   # what a resumed run reads back from its folder
 
 
 def _split(blob: bytes, stem: str, out: Path) -> list[str]:
@@ -52,10 +58,27 @@ def _join(pieces_dir: Path, names: list[str], sha256: str, what: str) -> bytes:
     return blob
 
 
-def shrink(run: Path, out: Path, exact: bool = False) -> None:
+def _pieces(blob: bytes, stem: str, out: Path) -> dict:
+    return {"pieces": _split(blob, stem, out), "sha256": hashlib.sha256(blob).hexdigest()}
+
+
+def _run_logs(run: Path) -> bytes:
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w") as tar:
+        for name in RUN_LOGS:
+            if (run / name).is_file():
+                tar.add(run / name, arcname=name)
+    return buffer.getvalue()
+
+
+def shrink(run: Path, out: Path, exact: bool = False, resumable: bool = False) -> None:
     """`exact`: the weights as trained (float32, twice the pieces), for an evaluation that goes on elsewhere
-    with `rvt2 eval --resume` and must run the model its first episodes ran."""
+    with `rvt2 eval --resume` and must run the model its first episodes ran. `resumable`: exact, and what
+    `rvt2 train --resume` needs besides (the training state and the run's logs)."""
+    exact = exact or resumable
     ckpt = resolve(run)
+    if resumable and not (ckpt / STATE).is_file():
+        sys.exit(f"{ckpt}: has no {STATE} (a checkpoint restored for evaluation); it cannot be trained on")
     out.mkdir(parents=True, exist_ok=True)
     weights = load_file(str(ckpt / WEIGHTS))
     dtype = torch.float32 if exact else torch.float16
@@ -71,9 +94,19 @@ def shrink(run: Path, out: Path, exact: bool = False) -> None:
     manifest = {"step": config["step"], "pieces": pieces, "sha256": hashlib.sha256(blob).hexdigest(),
                 "instruction_pieces": instruction_pieces,
                 "instructions_sha256": hashlib.sha256(instructions).hexdigest()}
+    size = len(blob) + len(instructions)
+    if resumable:
+        state, logs = (ckpt / STATE).read_bytes(), _run_logs(run)
+        manifest["state"], manifest["run_logs"] = _pieces(state, "state", out), _pieces(logs, "run_logs", out)
+        size += len(state) + len(logs)
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2))
-    print(f"{ckpt}: {len(pieces) + len(instruction_pieces)} pieces, "
-          f"{(len(blob) + len(instructions)) / 2**20:.1f} MiB")
+    print(f"{ckpt}: {len(all_pieces(manifest))} pieces, {size / 2**20:.1f} MiB")
+
+
+def all_pieces(manifest: dict) -> list[str]:
+    """Every piece a manifest names, in the order they are sent: weights, instructions, then what resuming needs."""
+    return (manifest["pieces"] + manifest["instruction_pieces"]
+            + [p for part in ("state", "run_logs") if part in manifest for p in manifest[part]["pieces"]])
 
 
 def restore(pieces_dir: Path, run: Path) -> None:
@@ -86,13 +119,25 @@ def restore(pieces_dir: Path, run: Path) -> None:
         instructions = (pieces_dir / INSTRUCTIONS).read_bytes()
     name = f"step_{manifest['step']:07d}"
     weights = {k: (v.float() if v.is_floating_point() else v).contiguous() for k, v in load(blob).items()}
+    state = _join(pieces_dir, manifest["state"]["pieces"], manifest["state"]["sha256"], "training state") \
+        if "state" in manifest else None
     with atomic_folder(run / "checkpoints" / name, replace=True) as final:  # readable by all, as rvt2's own
         save_file(weights, str(final / WEIGHTS))
         shutil.copy(pieces_dir / CONFIG, final / CONFIG)
         (final / INSTRUCTIONS).write_bytes(instructions)
+        if state is not None:
+            (final / STATE).write_bytes(state)
+    if "run_logs" in manifest:
+        logs = _join(pieces_dir, manifest["run_logs"]["pieces"], manifest["run_logs"]["sha256"], "run's logs")
+        with tarfile.open(fileobj=io.BytesIO(logs)) as tar:
+            for log in RUN_LOGS:   # only these names: nothing else of the archive is written
+                if log in tar.getnames():
+                    with atomic_open(run / log, "wb") as f:
+                        f.write(tar.extractfile(log).read())
     with atomic_open(run / "last", "w") as f:
         f.write(f"checkpoints/{name}\n")
-    print(f"{run}: checkpoint {name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights)")
+    print(f"{run}: checkpoint {name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights"
+          + ("; training state and logs: `rvt2 train --out RUN --resume` continues it)" if state is not None else ")"))
 
 
 def main() -> None:
@@ -102,12 +147,14 @@ def main() -> None:
     s.add_argument("run", type=Path)
     s.add_argument("out", type=Path)
     s.add_argument("--exact", action="store_true", help="float32 weights, as trained (default: float16, half the pieces)")
+    s.add_argument("--resumable", action="store_true",
+                   help="exact weights, the training state and the run's logs: training goes on elsewhere with --resume")
     r = sub.add_parser("restore")
     r.add_argument("pieces", type=Path)
     r.add_argument("run", type=Path)
     args = parser.parse_args()
     if args.command == "shrink":
-        shrink(args.run, args.out, args.exact)
+        shrink(args.run, args.out, args.exact, args.resumable)
     else:
         restore(args.pieces, args.run)
 

@@ -24,7 +24,8 @@
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
 # RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results);
-# EXACT=1: `weights` sends float32 weights as trained (an evaluation to be resumed elsewhere: 25 pieces for rvt2-18).
+# EXACT=1: `weights` sends float32 weights as trained (an evaluation to be resumed elsewhere: 25 pieces for rvt2-18);
+# RESUMABLE=1: also the training state and the run's logs (a training stopped by --time-limit, resumed elsewhere).
 set -euo pipefail
 cd "$(dirname "$0")/../.."   # the repository root: every path below is relative to it
 KIT=scripts/offline-gpu-host
@@ -280,10 +281,11 @@ PY
             # float16 weights, then the instruction embeddings) and, with 0, the config and manifest (meta.tar)
     first=$1 count=$2
     shift 2
-    [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$RUN_DIR" "$W/export/$RUN" ${EXACT:+--exact}
+    [ -d "$W/export/$RUN" ] || python3 $KIT/gpu_checkpoint.py shrink "$RUN_DIR" "$W/export/$RUN" ${EXACT:+--exact} \
+      ${RESUMABLE:+--resumable}
     mkdir -p "$OUT/$RUN"
-    mapfile -t pieces < <(python3 -c 'import json, sys; m = json.load(open(sys.argv[1]))
-print("\n".join(m["pieces"] + m["instruction_pieces"]))' "$W/export/$RUN/manifest.json")
+    mapfile -t pieces < <(python3 -c 'import json, sys; sys.path.insert(0, sys.argv[2]); from gpu_checkpoint import all_pieces
+print("\n".join(all_pieces(json.load(open(sys.argv[1])))))' "$W/export/$RUN/manifest.json" "$KIT")
     for piece in "${pieces[@]:$first:$count}"; do cp "$W/export/$RUN/$piece" "$OUT/$RUN/"; done
     if [ "$first" = 0 ]; then tar -cf "$OUT/$RUN/meta.tar" -C "$W/export/$RUN" config.json manifest.json; fi
     echo "${#pieces[@]} pieces in all"
