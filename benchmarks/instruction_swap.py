@@ -25,14 +25,10 @@ from collections import defaultdict
 import numpy as np
 import torch
 
-from rvt2cli.data.paths import episode_paths
-from rvt2cli.eval.offline import DEFAULT_MAX_POINTS, _cameras
+from rvt2cli.eval.offline import load_demos_for
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.tasks import get_task
-from rvt2cli.train.batches import pack
-from rvt2cli.train.checkpoint import load_policy
 from rvt2cli.train.metrics import predict_batches
-from rvt2cli.train.samples import load_samples
 
 
 def alternatives(task_name: str, instruction: str) -> list[str]:
@@ -57,18 +53,14 @@ def predicted_positions(policy, packed, batch_size: int, autocast: bool) -> np.n
 
 def swap_report(checkpoint: str, demos, device: str = "cpu", batch_size: int = 8, decides_mm: float = 20.0,
                 near_mm: float = 5.0) -> dict:
-    policy, ckpt = load_policy(checkpoint, device=device)
-    paths = episode_paths(list(demos))
-    samples = load_samples(paths, include_failures=True, progress=False, cameras=_cameras(ckpt))
-    options = ckpt.info.get("options") or {}
-    max_points = int(options.get("max_points") or DEFAULT_MAX_POINTS)
+    loaded = load_demos_for(checkpoint, demos, device=device, progress=False)
+    policy, ckpt, paths, samples = loaded.policy, loaded.checkpoint, loaded.paths, loaded.samples
     # each sample's instructions, its own first: positions[k, r] is sample r predicted under its k-th
     choices = [alternatives(samples.tasks[samples.task_index[i]], samples.instructions[samples.instruction_index[i]])
                for i in range(len(samples))]
     texts = sorted({t for c in choices for t in c})
     lang = InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(texts)
-    base = pack(samples, list(range(len(samples))), lang, max_points, torch.device(device), seed=0,
-                aim_offsets=ckpt.aim_offsets)
+    base = loaded.pack(lang, device)
     autocast = torch.device(device).type == "cuda"
     most = max(len(c) for c in choices)
     positions = np.full((most, len(samples), 3), np.nan)

@@ -10,6 +10,7 @@ closed-loop evaluation costs simulator hours.
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -33,12 +34,25 @@ def _cameras(ckpt) -> tuple[str, ...] | None:
     return next(iter(rigs)) if len(rigs) == 1 and next(iter(rigs)) else None
 
 
-def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, device: str = "cpu", batch_size: int = 8,
-                     progress: bool = True) -> dict:
-    start = time.perf_counter()
-    out = ensure_folder(out) if out is not None else None  # a bad --out is one line, before minutes of work
+@dataclass
+class DemosForPolicy:
+    """A checkpoint's policy and the samples of recorded demos as it sees them (its cameras, its point budget)."""
+    policy: object
+    checkpoint: object
+    paths: list
+    samples: object
+    max_points: int
+
+    def pack(self, lang, device: str):
+        """Every sample, packed in order with these instruction embeddings, as training packs them."""
+        return pack(self.samples, list(range(len(self.samples))), lang, self.max_points, torch.device(device), seed=0,
+                    aim_offsets=self.checkpoint.aim_offsets)
+
+
+def load_demos_for(checkpoint: str, demos, device: str = "cpu", progress: bool = True) -> DemosForPolicy:
+    """The policy of `checkpoint` and every sample of `demos` (failed expert runs too); demos of a task the
+    checkpoint was not trained on are one line."""
     policy, ckpt = load_policy(checkpoint, device=device)
-    options = ckpt.info.get("options") or {}
     paths = episode_paths(list(demos))
     tasks = sorted({read_episode_overview(p).meta.task for p in paths})
     unknown = [t for t in tasks if t not in ckpt.tasks]
@@ -46,10 +60,17 @@ def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, devi
         raise UserError(f"{ckpt.path}: was not trained on task(s) {', '.join(unknown)} of the demos "
                         f"(it knows {', '.join(ckpt.tasks)}); give demos of those tasks")
     samples = load_samples(paths, include_failures=True, progress=progress, cameras=_cameras(ckpt))
-    lang = InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(samples.instructions)
-    max_points = int(options.get("max_points") or DEFAULT_MAX_POINTS)
-    packed = pack(samples, list(range(len(samples))), lang, max_points, torch.device(device), seed=0,
-                  aim_offsets=ckpt.aim_offsets)
+    options = ckpt.info.get("options") or {}
+    return DemosForPolicy(policy, ckpt, paths, samples, int(options.get("max_points") or DEFAULT_MAX_POINTS))
+
+
+def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, device: str = "cpu", batch_size: int = 8,
+                     progress: bool = True) -> dict:
+    start = time.perf_counter()
+    out = ensure_folder(out) if out is not None else None  # a bad --out is one line, before minutes of work
+    loaded = load_demos_for(checkpoint, demos, device=device, progress=progress)
+    policy, ckpt, paths, samples = loaded.policy, loaded.checkpoint, loaded.paths, loaded.samples
+    packed = loaded.pack(InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(samples.instructions), device)
     from tqdm import tqdm
 
     with tqdm(total=len(packed), desc="offline", unit="obs", disable=not progress, dynamic_ncols=True) as bar:
