@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rvt2cli.errors import UserError
-from rvt2cli.eval.journal import read_journal
+from rvt2cli.eval.journal import NAME as JOURNAL, read_journal
 from rvt2cli.runtime import render_threads
 
 REPOSITORY = Path(__file__).resolve().parent.parent
@@ -169,7 +169,7 @@ def share_workers(workers: int, episodes: list[int]) -> list[int]:
 def episodes_left(folder: Path, episodes: int) -> int:
     """The episodes an evaluation into `folder` still has to run: those its journal lacks (at least one, so
     that a finished evaluation's command still gets a worker to write its report)."""
-    journal = folder / "episodes.jsonl"
+    journal = folder / JOURNAL
     return max(1, episodes - len(read_journal(journal)[1])) if journal.exists() else episodes
 
 
@@ -211,7 +211,7 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
             shares = share_workers(settings.workers, [episodes_left(folder, episodes * len(experiment["tasks"]))
                                                       for folder, (_, _, episodes, _, _) in zip(folders, runs)])
             for (seed, name, episodes, first_seed, extra_options), folder, share in zip(runs, folders, shares):
-                resume = ["--resume"] if (folder / "episodes.jsonl").exists() else []  # an interrupted evaluation
+                resume = ["--resume"] if (folder / JOURNAL).exists() else []  # an interrupted evaluation
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
                                            "--episodes", str(episodes), "--seed", str(first_seed), "--workers", str(share),
                                            "--device", settings.device, "--out", str(folder)]

@@ -21,7 +21,7 @@ import json
 import tomllib
 from pathlib import Path
 
-from rvt2cli.eval.journal import read_journal
+from rvt2cli.eval.journal import NAME as JOURNAL, read_journal
 from rvt2cli.eval.report import build_report, wilson_interval
 
 
@@ -38,10 +38,10 @@ def load_policy(dirs: str) -> dict:
 
 def journal_of(folder: Path) -> Path:
     """An eval folder's journal: `rvt2 eval`'s episodes.jsonl, or the gzip copy kept in benchmarks/results."""
-    for name in ("episodes.jsonl", "episodes.jsonl.gz"):
+    for name in (JOURNAL, JOURNAL + ".gz"):
         if (folder / name).exists():
             return folder / name
-    raise SystemExit(f"results_table: {folder} has no episodes.jsonl(.gz); give an `rvt2 eval --out` folder")
+    raise SystemExit(f"results_table: {folder} has no {JOURNAL}(.gz); give an `rvt2 eval --out` folder")
 
 
 def load_models(models: str) -> list[dict]:
