@@ -65,3 +65,34 @@ def tiny_checkpoint(tiny_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("runs") / "tiny"
     result = train(TrainOptions(data=[str(tiny_dataset)], out=str(out), steps=300, save_every=150, **TINY_TRAIN), say=lambda *_: None)
     return out, result
+
+
+AIM = [0.1, 0.0, 0.03]  # stack_cube's aim offset in `aimed_checkpoint` (as `--aim-held` would keep it)
+
+
+@pytest.fixture(scope="session")
+def aimed_checkpoint(tiny_checkpoint, tmp_path_factory):
+    """The tiny checkpoint as if trained with `--aim-held` and an aim offset for stack_cube (its config
+    says so; the weights are the same)."""
+    import json
+    import shutil
+
+    from rvt2cli.train.checkpoint import resolve
+
+    aimed = tmp_path_factory.mktemp("aimed") / "checkpoint"
+    shutil.copytree(resolve(tiny_checkpoint[0]), aimed)
+    config = json.loads((aimed / "config.json").read_text())
+    (aimed / "config.json").write_text(json.dumps({**config, "aim_offsets": {"stack_cube": AIM}}))
+    return aimed
+
+
+@pytest.fixture(scope="session")
+def onnx_export(aimed_checkpoint, tiny_dataset, tmp_path_factory):
+    """`rvt2 export --format onnx` of the aimed checkpoint, parity-checked on the tiny dataset, in a fresh
+    process where the export is the first thing traced: (the command's result, the exported folder).
+    Made once, since the ONNX exporter takes over a minute on 2 cores; the tests only read the folder."""
+    out = tmp_path_factory.mktemp("onnx_export") / "policy"
+    result = run_cli("export", "--checkpoint", aimed_checkpoint, "--format", "onnx", "--out", out,
+                     "--max-points", "20000", "--check-data", tiny_dataset)
+    return result, out
+

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import AIM
 from rvt2cli.data import read_episode
 from rvt2cli.data.fusion import intrinsic_to_opencv
 from rvt2cli.deploy import CameraFrame, KeyframePolicy
 from rvt2cli.errors import UserError
 from rvt2cli.eval.sources import PolicySource
-from rvt2cli.export.exporter import export_policy
 from rvt2cli.tasks import get_task
 from rvt2cli.train.checkpoint import load_policy
 
@@ -25,24 +25,6 @@ EXAMPLE = Path(__file__).parent.parent / "examples" / "deploy_from_frames.py"
 @pytest.fixture(scope="module")
 def episode(tiny_dataset):
     return read_episode(sorted(tiny_dataset.glob("*.mcap"))[0])
-
-
-AIM = [0.1, 0.0, 0.03]
-
-
-@pytest.fixture(scope="module")
-def aimed_checkpoint(tiny_checkpoint, tmp_path_factory):
-    """The tiny checkpoint as if trained with `--aim-held` and an aim offset for stack_cube (its config
-    says so; the weights are the same)."""
-    import shutil
-
-    from rvt2cli.train.checkpoint import resolve
-
-    aimed = tmp_path_factory.mktemp("aimed") / "checkpoint"
-    shutil.copytree(resolve(tiny_checkpoint[0]), aimed)
-    config = json.loads((aimed / "config.json").read_text())
-    (aimed / "config.json").write_text(json.dumps({**config, "aim_offsets": {"stack_cube": AIM}}))
-    return aimed
 
 
 def holding(episode) -> int:
@@ -81,28 +63,28 @@ def test_checkpoint_predicts_what_eval_predicts(tiny_checkpoint, episode):
     assert np.linalg.norm(np.subtract(mm.position, got.position)) < 0.02 and mm.gripper_open == got.gripper_open
 
 
-def test_exported_folder_predicts_like_the_checkpoint(aimed_checkpoint, tiny_dataset, episode, tmp_path):
+def test_exported_folder_predicts_like_the_checkpoint(aimed_checkpoint, onnx_export, episode, tmp_path):
     """Exported with its aim offsets (the manifest's, an input of the ONNX graph), the policy answers as
     the checkpoint does, gripper open (the TCP aimed) and closed (the offset aimed)."""
-    run_dir = aimed_checkpoint
-    export_policy(str(run_dir), "onnx", str(tmp_path / "policy"), max_points=20000, check_data=(str(tiny_dataset),))
-    assert json.loads((tmp_path / "policy" / "manifest.json").read_text())["tasks"]["stack_cube"]["aim_offset"] == AIM
+    run_dir, (result, policy_dir) = aimed_checkpoint, onnx_export
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads((policy_dir / "manifest.json").read_text())["tasks"]["stack_cube"]["aim_offset"] == AIM
     for frame, gripper_open in ((0, True), (holding(episode), False)):
         fingers = episode.meta.robot.fingers(episode.robot.joint_positions[frame], episode.robot.joint_names)
         args = (frames_of(episode, frame), episode.instruction["text"], gripper_open, fingers)
-        exported, checkpoint = KeyframePolicy.load(tmp_path / "policy").predict(*args), KeyframePolicy.load(run_dir).predict(*args)
+        exported, checkpoint = KeyframePolicy.load(policy_dir).predict(*args), KeyframePolicy.load(run_dir).predict(*args)
         assert np.linalg.norm(np.subtract(exported.position, checkpoint.position)) < 0.001
         assert np.allclose(np.abs(np.dot(exported.quaternion, checkpoint.quaternion)), 1.0, atol=1e-5)
         assert (exported.gripper_open, exported.ignore_collisions) == (checkpoint.gripper_open, checkpoint.ignore_collisions)
     # the example runs on it, as a user would (at the last frame above, holding)
-    r = subprocess.run([sys.executable, str(EXAMPLE), str(tmp_path / "policy"), str(episode.path), str(frame)], capture_output=True,
+    r = subprocess.run([sys.executable, str(EXAMPLE), str(policy_dir), str(episode.path), str(frame)], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert np.allclose(json.loads(r.stdout)["position"], exported.position, atol=0.02)
     # an export from before the aim_offset input is refused in one line, not run with the wrong inputs
     import shutil
 
-    shutil.copytree(tmp_path / "policy", tmp_path / "old")
+    shutil.copytree(policy_dir, tmp_path / "old")
     manifest = json.loads((tmp_path / "old" / "manifest.json").read_text())
     del manifest["inputs"]["aim_offset"]
     (tmp_path / "old" / "manifest.json").write_text(json.dumps(manifest))

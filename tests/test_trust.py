@@ -125,15 +125,15 @@ def test_export_refuses_a_folder_that_is_not_a_previous_export(tiny_checkpoint, 
 
 
 @pytest.mark.sim
-def test_a_previous_export_is_replaced_whole(tiny_checkpoint, tmp_path):
+def test_a_previous_export_is_replaced_whole(tiny_checkpoint, onnx_export, tmp_path):
     from rvt2cli.export.exporter import export_policy
 
     run_dir, _ = tiny_checkpoint
     out = tmp_path / "policy"
+    shutil.copytree(onnx_export[1], out)  # a previous ONNX export, then a TorchScript one over it
     export_policy(str(run_dir), "torchscript", str(out), max_points=5000)
-    export_policy(str(run_dir), "onnx", str(out), max_points=5000)
     manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["format"] == "onnx" and (out / "policy.onnx").is_file() and not (out / "policy.pt").exists()
+    assert manifest["format"] == "torchscript" and (out / "policy.pt").is_file() and not (out / "policy.onnx").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folder left
 
 
