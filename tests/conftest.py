@@ -95,4 +95,3 @@ def onnx_export(aimed_checkpoint, tiny_dataset, tmp_path_factory):
     result = run_cli("export", "--checkpoint", aimed_checkpoint, "--format", "onnx", "--out", out,
                      "--max-points", "20000", "--check-data", tiny_dataset)
     return result, out
-
