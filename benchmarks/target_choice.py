@@ -1,0 +1,158 @@
+"""Which target did the policy choose? On the tasks that push an object across the table to the target of
+a named colour, the push's direction says which target the policy went for, whether or not the object ended
+on it.
+
+    python -m benchmarks.target_choice JOURNAL... [--source oracle] [--json FILE]
+
+Each policy episode (or the oracle's: the expert's keyframes, which choose the named target every time) of reach_and_drag or slide_block_to_color_target in the evaluation journals (`rvt2 eval`'s
+episodes.jsonl, or its gzip copy) is rebuilt from its seed and variation, which lay out the scene as the
+evaluation saw it. The push is the first move between two keyframes near the table (both under
+`SWEEP_HEIGHT_M`) longer than `SWEEP_MIN_M`: the stick dragging the cube, or the closed fingers sliding the
+block. The chosen target is the one whose direction from the object's start is nearest to the push's, where
+that is within `CHOICE_TOLERANCE_DEG` (else the episode made no clear choice). Reported per task: how often
+the chosen target is the named one, against chance (one in the number of targets), and the success of the
+episodes that chose it.
+"""
+
+import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.machine import describe
+from rvt2cli.errors import UserError
+from rvt2cli.eval.journal import read_journal
+from rvt2cli.eval.report import wilson_interval
+from rvt2cli.tasks import get_task
+
+SWEEP_HEIGHT_M = 0.03      # both keyframes of the push this close to the table (the TCP's height)
+SWEEP_MIN_M = 0.05         # and this far apart on the table
+CHOICE_TOLERANCE_DEG = 20  # the targets lie 35 (reach_and_drag) and 90 (slide_block) degrees apart
+TASKS = ("reach_and_drag", "slide_block_to_color_target")
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where the pushed object starts, where each target lies (xy, m), their colours and which of them the
+    instruction names."""
+
+    start: np.ndarray
+    targets: list[np.ndarray]
+    colours: list[str]
+    named: int
+
+
+def layout(task_name: str, scene) -> Layout:
+    """The layout of a reset scene (`env.unwrapped`) of one of the two tasks."""
+    xy = lambda actor: np.asarray(actor.pose.sp.p[:2], dtype=np.float64)  # noqa: E731
+    if task_name == "reach_and_drag":
+        return Layout(xy(scene.cube), [xy(s) for s in scene.squares], list(scene.square_colors), scene.target_square)
+    if task_name == "slide_block_to_color_target":
+        from rvt2cli.record.rlbench18.slide_block_to_color_target import COLORS
+
+        return Layout(xy(scene.block), [xy(t) for t in scene.targets], list(COLORS), scene.variation)
+    raise UserError(f"{task_name}: target_choice knows {' and '.join(TASKS)}")
+
+
+def push(targets: list[list[float]]) -> np.ndarray | None:
+    """The first sweep over the table among an episode's keyframe targets (xy, m), or None."""
+    for a, b in zip(targets, targets[1:]):
+        if a[2] < SWEEP_HEIGHT_M and b[2] < SWEEP_HEIGHT_M:
+            move = np.subtract(b[:2], a[:2])
+            if np.linalg.norm(move) > SWEEP_MIN_M:
+                return move
+    return None
+
+
+def chosen_target(scene: Layout, move: np.ndarray | None) -> int | None:
+    """The target in the push's direction from the object's start, or None where no target is within the
+    tolerance (or there was no push)."""
+    if move is None:
+        return None
+    def bearing(v):
+        return np.arctan2(v[1], v[0])
+
+    # the angle between the push and each target's direction, wrapped into [0, pi]
+    off = [abs(np.angle(np.exp(1j * (bearing(move) - bearing(t - scene.start))))) for t in scene.targets]
+    best = int(np.argmin(off))
+    return best if np.degrees(off[best]) <= CHOICE_TOLERANCE_DEG else None
+
+
+def episode_choices(envs: dict, records: list[dict], source: str = "policy") -> list[dict]:
+    """`envs`: each task's environment (`rvt2cli.record.scene.make_env`). One row per episode of `source` (policy
+    or oracle) of the two tasks: its seed, variation, success, the targets' colours, the named and the chosen
+    target (None: no clear choice)."""
+    from rvt2cli.record.scene import set_variation
+    from rvt2cli.runtime import seed_everything
+
+    rows = []
+    for r in records:
+        if r["source"] != source or r["task"] not in envs:
+            continue
+        task_env = envs[r["task"]]
+        seed_everything(r["seed"])
+        set_variation(task_env, r["variation"])
+        task_env.reset(seed=r["seed"])
+        scene = layout(r["task"], task_env.unwrapped)
+        chosen = chosen_target(scene, push([s["target"] for s in r["steps"]]))
+        rows.append({"task": r["task"], "seed": r["seed"], "variation": r["variation"], "success": bool(r["success"]),
+                     "targets": len(scene.targets), "colours": scene.colours, "named": scene.named, "chosen": chosen})
+    return rows
+
+
+def summarise(rows: list[dict]) -> dict[str, dict]:
+    out = {}
+    for task in dict.fromkeys(r["task"] for r in rows):
+        mine = [r for r in rows if r["task"] == task]
+        clear = [r for r in mine if r["chosen"] is not None]
+        named = [r for r in clear if r["chosen"] == r["named"]]
+        low, high = wilson_interval(len(named), len(clear)) if clear else (0.0, 0.0)
+        out[task] = {"episodes": len(mine), "clear_choices": len(clear), "named_chosen": len(named),
+                     "named_chosen_interval": [low, high], "chance": 1.0 / mine[0]["targets"],
+                     "success": sum(r["success"] for r in mine),
+                     "success_when_named_chosen": sum(r["success"] for r in named)}
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("journals", nargs="+", help="evaluation journals (episodes.jsonl or episodes.jsonl.gz)")
+    p.add_argument("--source", choices=("policy", "oracle"), default="policy", help="whose episodes (default policy)")
+    p.add_argument("--json", help="write the rows and the summary here too")
+    args = p.parse_args(argv)
+    records = []
+    for path in args.journals:
+        try:
+            records += read_journal(Path(path))[1]
+        except OSError as error:
+            raise SystemExit(f"{path}: cannot read it ({error.strerror}); give an evaluation's episodes.jsonl") from None
+        except UserError as error:
+            raise SystemExit(str(error)) from None
+    present = [t for t in TASKS if any(r["task"] == t and r["source"] == args.source for r in records)]
+    if not present:
+        raise SystemExit(f"no {args.source} episode of {' or '.join(TASKS)} in {', '.join(args.journals)}; "
+                         "give an evaluation of them")
+
+    from rvt2cli.record.scene import make_env
+
+    envs = {name: make_env(get_task(name), cameras=[]) for name in present}
+    rows = episode_choices(envs, records, args.source)
+    summary = summarise(rows)
+    print(f"which target the {args.source}'s push went for; {describe()}")
+    print("| task | episodes | a clear choice | the named target chosen | chance | success | success when the named target was chosen |")
+    print("|---|---|---|---|---|---|---|")
+    for task, s in summary.items():
+        low, high = s["named_chosen_interval"]
+        share = s["named_chosen"] / s["clear_choices"] if s["clear_choices"] else 0.0
+        print(f"| {task} | {s['episodes']} | {s['clear_choices']} | {s['named_chosen']} ({share:.0%}; {low:.0%}-{high:.0%}) "
+              f"| {s['chance']:.0%} | {s['success']} | {s['success_when_named_chosen']} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": describe(), "journals": args.journals, "source": args.source,
+                                               "summary": summary, "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
