@@ -49,7 +49,7 @@ CONCURRENT_PHASES = {"eval"}  # its commands run at the same time (`commands` sh
 # The keys an experiment file may have, per table; anything else is a typo the user should hear about.
 SCHEMA = {
     "": {"name", "summary", "renderer", "tasks", "record", "heldout", "train", "eval", "oracle", "published"},
-    "record": {"demos_per_task", "first_seed", "merge_refinements_mm", "hold_out_variations"},
+    "record": {"demos_per_task", "first_seed", "merge_refinements_mm", "hold_out_variations", "experts"},
     "heldout": {"tasks", "demos_per_task", "first_seed"},
     "train": {"config", "seeds", "steps", "batch_size", "options"},
     "eval": {"episodes_per_task", "first_seed", "options", "ranges", "extra"},
@@ -112,6 +112,13 @@ def load(path: Path) -> dict:
                         "into whole ranges; give a number of ranges that divides it")
     if not isinstance(experiment.get("record", {}).get("hold_out_variations", False), bool):
         raise UserError(f"{path}: [record] hold_out_variations takes true or false")
+    experts = experiment.get("record", {}).get("experts", {})
+    if not isinstance(experts, dict) or not all(isinstance(v, str) and ":" in v for v in experts.values()):
+        raise UserError(f"{path}: [record] experts takes task = \"module:function\" pairs, e.g. "
+                        "{ reach_and_drag = \"rvt2cli.record.rlbench18.reach_and_drag:expert_via_target\" }")
+    if set(experts) - set(experiment.get("tasks", [])):
+        raise UserError(f"{path}: [record] experts names {sorted(set(experts) - set(experiment['tasks']))[0]!r}, "
+                        "which is not among the file's tasks")
     if experiment.get("renderer", "auto") not in RENDERERS:
         raise UserError(f"{path}: renderer = {experiment['renderer']!r}; choose one of {', '.join(RENDERERS)}")
     for required in ("name", "tasks", "record", "train", "eval"):
@@ -187,8 +194,10 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     run = []
 
     def demos(phase, folder, tasks, episodes, first_seed, extra=()):  # one command: its workers serve every task
+        # held-out demos come from the same experts as the training demos
+        experts = [a for task, spec in record.get("experts", {}).items() if task in tasks for a in ("--expert", f"{task}={spec}")]
         run.append((phase, rvt2 + ["record", "--task", ",".join(tasks), "--episodes", str(episodes), "--seed", str(first_seed),
-                                   "--workers", workers, "--out", str(out / folder), "--no-progress", *extra]))
+                                   "--workers", workers, "--out", str(out / folder), "--no-progress", *experts, *extra]))
         run.append((phase, rvt2 + ["extract-keyframes", str(out / folder)] + merge))
 
     for phase in phases:

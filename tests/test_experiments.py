@@ -132,6 +132,16 @@ def test_the_unseen_split_leaves_held_out_variations_out_of_the_training_demos(t
         runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=2)))
 
 
+def test_experts_named_in_the_file_record_the_training_and_the_held_out_demos(tmp_path):
+    run = runner.commands(runner.load(runner.resolve("rvt2_18_colour_via")), runner.Settings(out=tmp_path, workers=2))
+    records = [argv for phase, argv in run if argv[1] == "record"]
+    assert [phase for phase, argv in run if argv[1] == "record"] == ["record", "heldout"]
+    for argv in records:
+        experts = [argv[i + 1] for i, a in enumerate(argv) if a == "--expert"]
+        assert experts == [f"{task}=rvt2cli.record.rlbench18.{task}:expert_via_target"
+                           for task in ("reach_and_drag", "slide_block_to_color_target")]
+
+
 def test_print_is_the_default_and_names_each_phase(capsys, monkeypatch):
     monkeypatch.delenv("LP_NUM_THREADS", raising=False)
     assert runner.main(["rvt2_25demos", "--phase", "train,eval", "--workers", "4"]) == 0
@@ -153,6 +163,10 @@ def test_print_is_the_default_and_names_each_phase(capsys, monkeypatch):
     ("name = 'x'\ntasks = [\n", "not valid TOML"),
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\nhold_out_variations = 'yes'\n[train]\nsteps = 1\n"
      "[eval]\nepisodes_per_task = 1\n", "[record] hold_out_variations takes true or false"),
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\nexperts = { pull_cube = 'm:f' }\n[train]\nsteps = 1\n"
+     "[eval]\nepisodes_per_task = 1\n", "[record] experts names 'pull_cube', which is not among the file's tasks"),
+    ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\nexperts = { push_cube = 'nocolon' }\n[train]\n"
+     "steps = 1\n[eval]\nepisodes_per_task = 1\n", "[record] experts takes task = \"module:function\" pairs"),
     ("name = 'x'\nrenderer = 'mesa'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\n"
      "episodes_per_task = 1\n", "renderer = 'mesa'; choose one of auto, nvidia, lavapipe"),
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 100\n"

@@ -1,5 +1,6 @@
 """`rvt2 record`: scripted-expert demonstrations in ManiSkill/SAPIEN -> MCAP episodes."""
 
+import argparse
 import time
 
 from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names
@@ -30,9 +31,19 @@ def register(subparsers) -> None:
     p.add_argument("--voxel-size", type=POSITIVE, help="downsample fused clouds to this voxel size in metres (default: no)")
     p.add_argument("--store-clouds", action="store_true", help="also store the fused cloud (/points/world) for viewing in Foxglove")
     p.add_argument("--keep-failures", action="store_true", help="also keep episodes in which the expert failed")
+    p.add_argument("--expert", action="append", default=[], type=task_expert, metavar="TASK=MODULE:FUNCTION",
+                   help="record TASK with another scripted expert than its own (repeatable), e.g. "
+                        "reach_and_drag=rvt2cli.record.rlbench18.reach_and_drag:expert_via_target")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--max-attempts", type=COUNT, help="give up after this many episodes (default 10 x --episodes + 10)")
     p.set_defaults(run=run)
+
+
+def task_expert(text: str) -> tuple[str, str]:
+    name, sep, spec = text.partition("=")
+    if not sep or ":" not in spec:
+        raise argparse.ArgumentTypeError(f"{text!r}: give TASK=module:function")
+    return name.strip(), spec.strip()
 
 
 def run(args) -> int:
@@ -60,13 +71,14 @@ def run(args) -> int:
         raise UserError(f"unknown camera(s) {', '.join(unknown)}; known cameras: {', '.join(CAMERAS)}")
 
     from rvt2cli.atomic import ensure_folder
-    from rvt2cli.record.recorder import RecordOptions
+    from rvt2cli.record.recorder import RecordOptions, check_experts
 
+    check_experts(args.expert, [task.name for task in tasks])
     ensure_folder(args.out)  # before the progress bar: a bad --out is one line
 
     options = RecordOptions(cameras=cameras, image_size=args.image_size, obs_every=args.obs_every,
                             voxel_size=args.voxel_size, store_clouds=args.store_clouds, keep_failures=args.keep_failures,
-                            variations=variations)
+                            variations=variations, experts=tuple(args.expert))
     return 0 if _record(tasks, args, options) else 1
 
 

@@ -9,7 +9,7 @@ episodes over them: the seed picks the variation (`rvt2cli.tasks.episode_variati
 
 import time
 from concurrent.futures import FIRST_COMPLETED, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +19,8 @@ from rvt2cli.data import EpisodeMeta, EpisodeWriter
 from rvt2cli.data.fusion import fuse
 from rvt2cli.data.provenance import software_versions
 from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
-from rvt2cli.record.expert import ExpertRun, run_expert
+from rvt2cli.errors import UserError
+from rvt2cli.record.expert import ExpertRun, load_expert, run_expert
 from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
 from rvt2cli.robot import RobotFacts
 from rvt2cli.runtime import use_vulkan_driver, worker_pool
@@ -35,6 +36,13 @@ class RecordOptions:
     store_clouds: bool = False
     keep_failures: bool = False
     variations: str = "all"   # which the episodes spread over: all, seen (not the held-out split) or one index
+    experts: tuple[tuple[str, str], ...] = ()  # (task, "module:function"): another expert than the task's
+
+    def task(self, name: str) -> Task:
+        """The task as recorded: its expert replaced where `experts` names another."""
+        task = get_task(name)
+        expert = dict(self.experts).get(name)
+        return replace(task, expert=expert) if expert else task
 
 
 @dataclass
@@ -132,7 +140,7 @@ def _work(task_name: str, seed: int) -> EpisodeResult:
     if task is None or task.name != task_name:
         if _worker_scene["env"] is not None:
             _worker_scene["env"].close()
-        task = get_task(task_name)
+        task = options.task(task_name)
         _worker_scene.update(task=task, env=make_env(task, options.cameras, options.image_size))
     return record_episode(_worker_scene["env"], task, seed, out_dir, options)
 
@@ -169,6 +177,20 @@ class RecordSummary:
         return out
 
 
+def check_experts(experts, task_names) -> None:
+    """Each replacement expert names a task being recorded and a function that imports: one line otherwise,
+    before any simulator starts."""
+    for name, spec in experts:
+        if name not in task_names:
+            raise UserError(f"--expert {name}={spec}: {name} is not among the tasks being recorded "
+                            f"({', '.join(task_names)})")
+        try:
+            load_expert(spec)
+        except (ImportError, AttributeError, ValueError):
+            raise UserError(f"--expert {name}={spec}: no such function; give module:function, e.g. "
+                            "rvt2cli.record.rlbench18.reach_and_drag:expert_via_target") from None
+
+
 def record(task_name: str, episodes: int, out_dir: str | Path, seed: int = 0, workers: int = 1,
            options: RecordOptions = RecordOptions(), max_attempts: int | None = None, on_result=None) -> RecordSummary:
     """Record `episodes` successful episodes of one task (seeds from `seed` upwards); see `record_tasks`."""
@@ -183,9 +205,10 @@ def record_tasks(task_names, episodes: int, out_dir: str | Path, seed: int = 0, 
     within a task (the CLI's progress bar). With several workers one pool serves all tasks: a worker
     builds a task's scene when it is first given one of its seeds, so the processes start once and none
     waits at the end of one task while another has seeds left."""
-    tasks = [get_task(name) for name in task_names]
+    tasks = [options.task(name) for name in task_names]
     for task in tasks:
         task.variation_choices(options.variations)  # an unknown variation is the user's error, before any simulator starts
+    check_experts(options.experts, task_names)
     out_dir = ensure_folder(out_dir)
     max_attempts = max_attempts or 10 * episodes + 10
     summaries = [RecordSummary(task=task.name, requested=episodes) for task in tasks]

@@ -92,9 +92,13 @@ CLEARANCE_M = 0.01        # gap between the stick and the cube before the drag (
 ABOVE_TABLE_M = 0.003     # the stick's underside slides this far above the table
 
 
-def expert(env, seed=None):
+VIA_HEIGHT_M = 0.12      # expert_via_target: the TCP stops this high above the named square
+
+
+def expert(env, seed=None, via_target=False):
     """Grasp the stick near its end, lift it, turn it across the way to the target square behind the cube,
-    lower it there and drag the cube onto the square. Returns -1 when a motion cannot be planned."""
+    lower it there and drag the cube onto the square. `via_target`: after lifting the stick, first stop with
+    the TCP above the named square. Returns -1 when a motion cannot be planned."""
 
     env.reset(seed=seed)
     scene = env.unwrapped
@@ -105,8 +109,13 @@ def expert(env, seed=None):
     if not pick_up_tool(planner, scene, scene.stick, stick.p - (STICK_HALF[0] - GRIP_FROM_END_M) * along):
         return -1
 
+    square = scene.squares[scene.target_square].pose.sp.p
+    if via_target:
+        tcp = scene.agent.tcp.pose.sp
+        if planner.move_to_pose_with_screw(sapien.Pose([*square[:2], VIA_HEIGHT_M], tcp.q)) == -1:
+            return -1
     cube = scene.cube.pose.sp.p
-    drag = np.array([*(scene.squares[scene.target_square].pose.sp.p - cube)[:2], 0.0])
+    drag = np.array([*(square - cube)[:2], 0.0])
     distance = float(np.linalg.norm(drag))
     drag /= distance
     stick = scene.stick.pose.sp  # as it sits in the hand
@@ -124,3 +133,9 @@ def expert(env, seed=None):
     else:
         return -1
     return lower_and_slide(planner, down, drag * (distance + CLEARANCE_M), HOVER_M)
+
+
+def expert_via_target(env, seed=None):
+    """`expert` with a stop above the named square first: the keyframe the instruction decides lies on the
+    coloured square itself, as a named object's grasp does, rather than at a place beside the cube."""
+    return expert(env, seed, via_target=True)

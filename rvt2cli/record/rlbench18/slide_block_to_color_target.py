@@ -76,12 +76,14 @@ PUSH_HEIGHT = 0.02      # m: the TCP's height while it pushes (the closed finger
 BEHIND_M = 0.05         # m: the TCP starts this far behind the block's centre, clear of it
 CONTACT_M = 0.035       # m: from the TCP to the block's centre while the closed fingers push it
 LIFT_M = 0.08           # m: the TCP comes down onto its start from this high above it
+VIA_HEIGHT_M = 0.10     # m: expert_via_target's stop above the named target
 
 
-def expert(env, seed=None):
+def expert(env, seed=None, via_target=False):
     """Close the gripper, come down behind the block on the far side from the named target, push it
     in a straight line until its centre is over the target's centre, and lift away; each motion ends at
-    rest. The fingers face the push across their width. Returns -1 when a motion cannot be planned."""
+    rest. The fingers face the push across their width. `via_target`: first stop above the named target.
+    Returns -1 when a motion cannot be planned."""
     from rvt2cli.record.motions import solver
 
     env.reset(seed=seed)
@@ -102,7 +104,14 @@ def expert(env, seed=None):
     start = np.array([*(block - BEHIND_M * direction)[:2], PUSH_HEIGHT])
     end = np.array([*(goal - CONTACT_M * direction)[:2], PUSH_HEIGHT])
     planner.close_gripper()
-    for p in (start + [0, 0, LIFT_M], start, end, end + [0, 0, LIFT_M]):
+    via = [np.array([*goal[:2], VIA_HEIGHT_M])] if via_target else []
+    for p in (*via, start + [0, 0, LIFT_M], start, end, end + [0, 0, LIFT_M]):
         if planner.move_to_pose_with_screw(pose(p)) == -1:
             return -1
     return 0
+
+
+def expert_via_target(env, seed=None):
+    """`expert` with a stop above the named target first: the keyframe the instruction decides lies on the
+    coloured target itself, as a named object's grasp does, rather than on the block's far side."""
+    return expert(env, seed, via_target=True)
