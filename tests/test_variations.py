@@ -266,7 +266,9 @@ def test_a_push_onto_another_variations_target_fails_as_wrong_target(slide_env):
     outcome = run_episode(slide_env, task, 10_001, OtherVariationsKeyframes(slide_env, 0), "slide the block to blue target",
                           variation=1)
     assert not outcome.success and outcome.variation == 1 and outcome.wrong == "wrong_target"
-    assert failure_reason(episode_record("policy", outcome), insertion=False) == "wrong_target"
+    record = episode_record("policy", outcome)
+    assert failure_reason(record, insertion=False) == "wrong_target"
+    assert record["final_check"] == {"success": False, "wrong_target": True}  # the task's check at the end, in JSON
 
 
 def test_record_cli_records_one_variation(cli, tmp_path):

@@ -38,7 +38,7 @@ def episode_record(source: str, outcome: Outcome) -> dict:
             "step_budget": outcome.step_budget, "task_max_steps": outcome.task_steps,
             "collision_fallbacks": outcome.collision_fallbacks, "unreached_keyframes": sum(not s.reached for s in outcome.steps),
             "replans": outcome.replans, "instruction": outcome.instruction, "variation": outcome.variation,
-            "wrong": outcome.wrong, "error": outcome.error,
+            "wrong": outcome.wrong, "error": outcome.error, "final_check": outcome.final_check,
             "steps": [{"frame": s.frame, "reached": s.reach.reached, "retry": s.retry, "planner": s.reach.planner,
                        "position_error_mm": s.reach.position_error_mm, "rotation_error_deg": s.reach.rotation_error_deg,
                        "servo_steps": s.reach.servo_steps, "target": list(s.keyframe.pose),

@@ -58,6 +58,7 @@ class Outcome:
     instruction: str = ""
     variation: int = 0
     wrong: str | None = None  # "wrong_object" / "wrong_target": what the task's check says went to another variation's
+    final_check: dict = field(default_factory=dict)  # the task's check at the end: its numbers (e.g. stacked blocks)
     error: str | None = None
     video: list[np.ndarray] = field(default_factory=list, repr=False)
 
@@ -95,6 +96,16 @@ def insertion_gap_mm(env, info: dict) -> float | None:
     if "obj_to_goal_dist" in info:       # PlugCharger: success within 5 mm of the goal
         return 1000.0 * max(0.0, info["obj_to_goal_dist"][0].item() - 0.005)
     return None
+
+
+def check_numbers(info: dict) -> dict:
+    """A task's check (`evaluate()`: one-element tensors) as JSON numbers: flags as booleans, counts as ints."""
+    out = {}
+    for key, value in info.items():
+        if hasattr(value, "numel") and value.numel() == 1:
+            item = value.item()
+            out[key] = item if isinstance(item, (bool, int)) else float(item)
+    return out
 
 
 def wrong_choice(info: dict) -> str | None:
@@ -165,8 +176,10 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
     except StepBudgetExhausted:
         outcome.success = bool(env.unwrapped.evaluate()["success"].item())
     outcome.control_steps = executor.steps
+    final = env.unwrapped.evaluate()
+    outcome.final_check = check_numbers(final)
     if not outcome.success:
-        outcome.wrong = wrong_choice(env.unwrapped.evaluate())
+        outcome.wrong = wrong_choice(final)
         if stuck or any(not s.reached for s in outcome.steps):
             outcome.failure = "planning_failure"
         elif len(outcome.steps) >= keyframe_budget or executor.steps >= executor.step_budget:
