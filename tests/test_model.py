@@ -12,7 +12,7 @@ from rvt2cli.model.heatmap import ConvexUpsampleHeatmap, TransposedConvHeatmap
 from rvt2cli.model.locate import gaussian_targets, heatmaps_to_point, window_voxels
 from rvt2cli.model.loss import policy_loss
 from rvt2cli.model.mvt import MultiViewTransformer
-from rvt2cli.model.policy import Observation, RVT2Policy
+from rvt2cli.model.policy import Observation, RVT2Policy, points_in_box
 from rvt2cli.model.rotation import (angle_between, bins_to_quaternion, decode_euler, decode_window, euler_to_quaternion,
                                     quaternion_to_bins, soft_bin_targets)
 from rvt2cli.render.cameras import cube_rig, zoom_rig
@@ -214,6 +214,27 @@ def test_coarse_action_features_let_the_heads_see_what_stage_2_does_not(coarse):
     assert far.sum() > 1000 and not torch.equal(moved.points, obs.points)
     changed = not torch.allclose(rotation_logits(obs), rotation_logits(moved))
     assert changed == coarse
+
+
+def test_stage_1s_point_is_kept_where_stage_2s_box_holds_too_few_points():
+    """`stage2_min_points`: an observation whose cloud leaves stage 2's box (+-1/zoom around stage 1's point)
+    nearly empty keeps stage 1's point; one with enough points there takes stage 2's."""
+    torch.manual_seed(0)
+    obs = observation(SMALL, batch=2)
+    policy = RVT2Policy(SMALL).eval()
+    first = policy.predict(obs)
+    counts = points_in_box(obs, first.stage1_position, 1.0 / SMALL.zoom)
+    inside = ((obs.points - first.stage1_position[:, None]).abs() <= 1.0 / SMALL.zoom).all(-1)
+    assert counts[1] == inside[1, : obs.num_points[1]].sum() < inside[1].sum()  # padding points do not count
+    assert not torch.allclose(first.position, first.stage1_position)          # stage 2 moved the point
+    between = int(counts.min()) + 1   # more than the emptier box holds, no more than the fuller one
+    kept = replace(SMALL, stage2_min_points=between)
+    policy.cfg = kept
+    pred = policy.predict(obs)
+    blind = counts < between
+    assert blind.any() and not blind.all()
+    assert torch.equal(pred.position[blind], first.stage1_position[blind])
+    assert torch.equal(pred.position[~blind], first.position[~blind])
 
 
 def test_loss_decreases_on_a_fixed_batch():

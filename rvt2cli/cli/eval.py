@@ -44,6 +44,9 @@ def register(subparsers) -> None:
     p.add_argument("--replay", metavar="JOURNAL",
                    help="instead of a checkpoint: the keyframes a policy predicted in a recorded evaluation (its "
                         "episodes.jsonl), run through this executor (its seeds within --seed and --episodes)")
+    p.add_argument("--stage2-min-points", type=NON_NEGATIVE, metavar="N",
+                   help="keep stage 1's point where fewer than N cloud points lie in stage 2's zoomed box (it saw nothing "
+                        "to place the keyframe by; default: the checkpoint's, 0 for models trained so far)")
     p.add_argument("--batch-size", type=COUNT, default=8, help="--offline: observations per forward pass (default 8)")
     p.add_argument("--out", help="output folder (default: CHECKPOINT/eval, or CHECKPOINT/offline)")
     p.add_argument("--device", default=E.device, help="policy device (default cpu)")
@@ -73,7 +76,8 @@ def run(args) -> int:
                        workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
-                       device=args.device, resume=args.resume, replay=args.replay, insertion_search=args.insertion_search)
+                       device=args.device, resume=args.resume, replay=args.replay, insertion_search=args.insertion_search,
+                       stage2_min_points=args.stage2_min_points)
     bars = []
 
     def on_start(total):
@@ -118,7 +122,7 @@ def run_offline(args) -> int:
         raise UserError("eval --offline needs --checkpoint")
     out = args.out or str(Path(args.checkpoint) / "offline")
     report = evaluate_offline(args.checkpoint, args.offline, out, device=args.device, batch_size=args.batch_size,
-                              progress=not args.no_progress)
+                              progress=not args.no_progress, stage2_min_points=args.stage2_min_points)
     print(headline_line(report))
     print(f"report: {out}/offline.md, offline.json")
     return 0

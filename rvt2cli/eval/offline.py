@@ -49,10 +49,11 @@ class DemosForPolicy:
                     aim_offsets=self.checkpoint.aim_offsets)
 
 
-def load_demos_for(checkpoint: str, demos, device: str = "cpu", progress: bool = True) -> DemosForPolicy:
+def load_demos_for(checkpoint: str, demos, device: str = "cpu", progress: bool = True,
+                   stage2_min_points: int | None = None) -> DemosForPolicy:
     """The policy of `checkpoint` and every sample of `demos` (failed expert runs too); demos of a task the
-    checkpoint was not trained on are one line."""
-    policy, ckpt = load_policy(checkpoint, device=device)
+    checkpoint was not trained on are one line. `stage2_min_points` overrides the checkpoint's."""
+    policy, ckpt = load_policy(checkpoint, device=device, stage2_min_points=stage2_min_points)
     paths = episode_paths(list(demos))
     tasks = sorted({read_episode_overview(p).meta.task for p in paths})
     unknown = [t for t in tasks if t not in ckpt.tasks]
@@ -65,10 +66,10 @@ def load_demos_for(checkpoint: str, demos, device: str = "cpu", progress: bool =
 
 
 def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, device: str = "cpu", batch_size: int = 8,
-                     progress: bool = True) -> dict:
+                     progress: bool = True, stage2_min_points: int | None = None) -> dict:
     start = time.perf_counter()
     out = ensure_folder(out) if out is not None else None  # a bad --out is one line, before minutes of work
-    loaded = load_demos_for(checkpoint, demos, device=device, progress=progress)
+    loaded = load_demos_for(checkpoint, demos, device=device, progress=progress, stage2_min_points=stage2_min_points)
     policy, ckpt, paths, samples = loaded.policy, loaded.checkpoint, loaded.paths, loaded.samples
     packed = loaded.pack(InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(samples.instructions), device)
     from tqdm import tqdm
@@ -77,6 +78,7 @@ def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, devi
         scores = score_predictions(policy, packed, batch_size=batch_size, autocast=torch.device(device).type == "cuda",
                                    progress=bar.update)
     report = {"checkpoint": str(ckpt.path), "step": ckpt.info.get("step"), "episodes": len(paths),
+              "stage2_min_points": policy.cfg.stage2_min_points,
               "seconds": time.perf_counter() - start, **precision_report(scores, samples.tasks)}
     if out is not None:
         with atomic_open(out / "offline.json", "w") as f:
@@ -94,7 +96,9 @@ def markdown(report: dict) -> str:
     lines = [f"# Offline precision: {report['checkpoint']} (step {report['step']})", "",
              f"{report['overall']['samples']} observations of {report['episodes']} episodes; errors as median / p90. "
              "Rows \"starts\" and \"K start\": the observations at frame 0 and at each keyframe alone, the only "
-             "ones a closed loop makes.", "",
+             "ones a closed loop makes."
+             + (f" Stage 1's point kept where stage 2's box held fewer than {report['stage2_min_points']} points "
+                "(the stage 2 column is the prediction)." if report.get("stage2_min_points") else ""), "",
              "| task | keyframe | samples | stage 1 mm | stage 2 mm | rotation deg | gripper | collision flag |",
              "|---|---|---|---|---|---|---|---|"]
 

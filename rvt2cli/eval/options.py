@@ -33,6 +33,7 @@ class EvalOptions:
     resume: bool = False              # continue the evaluation in `out` (its journal) instead of refusing it
     replay: str | None = None         # a recorded evaluation's journal: its policy keyframes instead of a checkpoint's
     insertion_search: bool = True     # search for the hole where an insertion stops at a face (rvt2cli.eval.search)
+    stage2_min_points: int | None = None  # overrides the checkpoint's (ModelConfig.stage2_min_points)
 
     def plan(self, checkpoint_path: str | None) -> dict:
         """The options that decide which episodes run and how: a resumed evaluation must keep them."""
@@ -46,4 +47,6 @@ class EvalOptions:
             plan["paraphrases"] = True
         if self.variations != "all":
             plan["variations"] = self.variations
+        if self.stage2_min_points is not None:
+            plan["stage2_min_points"] = self.stage2_min_points
         return plan

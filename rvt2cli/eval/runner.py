@@ -56,7 +56,7 @@ class _Worker:
             from rvt2cli.eval.sources import PolicySource
             from rvt2cli.train.checkpoint import load_policy
 
-            policy, ckpt = load_policy(opts.checkpoint, device=opts.device)
+            policy, ckpt = load_policy(opts.checkpoint, device=opts.device, stage2_min_points=opts.stage2_min_points)
             self.policy = PolicySource(policy, ckpt, opts.device)
             self.rigs = ckpt.info.get("rigs", {})
 

@@ -52,6 +52,11 @@ class ModelConfig:
     # taught, and with few demos it can sit on the box's faces (a push's start 10 cm below the table).
     # 1.0: the whole box (the paper).
     stage2_window: float | None = None
+    # Inference: where fewer than this many of the cloud's points lie in stage 2's box, the prediction keeps
+    # stage 1's point, since stage 2 saw nothing to place it by. stack_blocks carries each block 12 cm above
+    # the tower, and the box (+-10 cm) ends 2 cm above the tower's top: on held-out demos stage 1 put that
+    # keyframe 3-6 mm from the demo's, stage 2 22-54 mm (docs/BENCHMARKS.md). 0: always stage 2's (the paper).
+    stage2_min_points: int = 0
     attention_dropout: float = 0.0
 
     @property

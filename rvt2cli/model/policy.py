@@ -62,6 +62,14 @@ class Stage(nn.Module):
         return tokens, logits
 
 
+def points_in_box(obs: Observation, center: torch.Tensor, half: float) -> torch.Tensor:
+    """How many of each observation's real points lie within `half` (cube units) of `center` [B, 3]: what
+    a stage's views around that centre can show. [B] int."""
+    inside = ((obs.points - center[:, None, :]).abs() <= half).all(dim=-1)
+    real = torch.arange(obs.points.shape[1], device=obs.points.device)[None, :] < obs.num_points.reshape(-1, 1)
+    return (inside & real).sum(dim=-1)
+
+
 class RVT2Policy(nn.Module):
     def __init__(self, cfg: ModelConfig, render_backend: str = "warp"):
         super().__init__()
@@ -154,6 +162,9 @@ class RVT2Policy(nn.Module):
         if self.cfg.stages == 2:
             outputs.append(self.run_stage(1, obs, stage1))
             position = self.locate(1, outputs[1], stage1)
+            if self.cfg.stage2_min_points:
+                blind = points_in_box(obs, stage1, 1.0 / self.cfg.zoom) < self.cfg.stage2_min_points
+                position = torch.where(blind[:, None], stage1, position)
         action = self.action(self.action_features(outputs, position))
         scores = [action["rot_x"], action["rot_y"], action["rot_z"]]
         rot_bins = torch.stack([s.argmax(-1) for s in scores], dim=-1)

@@ -150,11 +150,16 @@ def load_weights(model: torch.nn.Module, ckpt: Checkpoint) -> None:
     model.load_state_dict(ckpt.weights)
 
 
-def load_policy(path: str | Path, device="cpu", render_backend: str = "warp"):
-    """A checkpoint's policy in eval mode, ready for `predict`, and the checkpoint itself."""
+def load_policy(path: str | Path, device="cpu", render_backend: str = "warp", stage2_min_points: int | None = None):
+    """A checkpoint's policy in eval mode, ready for `predict`, and the checkpoint itself. `stage2_min_points`
+    overrides the checkpoint's (an inference setting: `ModelConfig.stage2_min_points`)."""
+    from dataclasses import replace
+
     from rvt2cli.model.policy import RVT2Policy
 
     ckpt = load_checkpoint(path)
+    if stage2_min_points is not None:
+        ckpt.config = replace(ckpt.config, stage2_min_points=stage2_min_points)
     policy = RVT2Policy(ckpt.config, render_backend=render_backend)
     load_weights(policy, ckpt)
     return policy.to(device).eval(), ckpt
