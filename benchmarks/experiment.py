@@ -217,8 +217,11 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
         elif phase == "eval":
             runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate)]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
-            shares = share_workers(settings.workers, [episodes_left(folder, episodes * len(experiment["tasks"]))
-                                                      for folder, (_, _, episodes, _, _) in zip(folders, runs)])
+            # an evaluation of some tasks only (options' `tasks`) runs their episodes alone
+            tasks_of = [len(str(opts["tasks"]).split(",")) if "tasks" in opts else len(experiment["tasks"])
+                        for *_, opts in runs]
+            shares = share_workers(settings.workers, [episodes_left(folder, episodes * count) for folder, (_, _, episodes, _, _), count
+                                                      in zip(folders, runs, tasks_of)])
             for (seed, name, episodes, first_seed, extra_options), folder, share in zip(runs, folders, shares):
                 resume = ["--resume"] if (folder / JOURNAL).exists() else []  # an interrupted evaluation
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),

@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import assert_one_line_error
@@ -160,6 +161,24 @@ def test_offline_precision_of_a_checkpoint_on_recorded_demos(tiny_checkpoint, ti
     assert stack["starts"]["samples"] == sum(len(a.keyframes) for a in annotations) < stack["samples"]
     assert sum(s["samples"] for s in stack["start_keyframes"].values()) == stack["starts"]["samples"]
     assert "| starts |" in (out / "offline.md").read_text() and "| 1 start |" in (out / "offline.md").read_text()
+
+
+def test_stage_2s_box_at_keyframe_starts_and_stage_1s_point_kept_below_a_count(tiny_checkpoint, tiny_dataset):
+    """benchmarks/stage2_blind.py on the tiny checkpoint: one row per keyframe start, each box's count, and the
+    kept error equal to stage 1's exactly where the count is below the threshold."""
+    from benchmarks import stage2_blind
+    from rvt2cli.data import read_episode
+    from rvt2cli.data.paths import episode_paths
+
+    rows = stage2_blind.keyframe_starts(str(tiny_checkpoint[0]), [str(tiny_dataset)])
+    annotations = [read_episode(p).require_keyframes() for p in episode_paths([str(tiny_dataset)])]
+    assert len(rows) == sum(len(a.keyframes) for a in annotations)
+    assert all(r["task"] == "stack_cube" and r["points"] >= 0 for r in rows)
+    threshold = int(np.median([r["points"] for r in rows])) + 1
+    kept = stage2_blind.with_min_points(rows, threshold)
+    assert any(r["points"] < threshold for r in rows) and any(r["points"] >= threshold for r in rows)
+    assert all(k["kept_mm"] == (k["stage1_mm"] if k["points"] < threshold else k["stage2_mm"]) for k in kept)
+    assert stage2_blind.table(kept, threshold)[-1].startswith("| **all** |")
 
 
 def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):
