@@ -37,6 +37,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from rvt2cli.cli.args import names
 from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import NAME as JOURNAL, read_journal
 from rvt2cli.runtime import render_threads
@@ -217,11 +218,10 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
         elif phase == "eval":
             runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate)]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
-            # an evaluation of some tasks only (options' `tasks`) runs their episodes alone
-            tasks_of = [len(str(opts["tasks"]).split(",")) if "tasks" in opts else len(experiment["tasks"])
-                        for *_, opts in runs]
-            shares = share_workers(settings.workers, [episodes_left(folder, episodes * count) for folder, (_, _, episodes, _, _), count
-                                                      in zip(folders, runs, tasks_of)])
+            # an evaluation of some tasks only (options' `tasks`, as `rvt2 eval --tasks` reads it) runs their episodes alone
+            tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts in runs]
+            shares = share_workers(settings.workers, [episodes_left(folder, episodes * count)
+                                                      for folder, (_, _, episodes, _, _), count in zip(folders, runs, tasks_of)])
             for (seed, name, episodes, first_seed, extra_options), folder, share in zip(runs, folders, shares):
                 resume = ["--resume"] if (folder / JOURNAL).exists() else []  # an interrupted evaluation
                 run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),

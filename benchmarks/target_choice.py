@@ -4,8 +4,9 @@ on it.
 
     python -m benchmarks.target_choice JOURNAL... [--source oracle] [--json FILE]
 
-Each policy episode (or the oracle's: the expert's keyframes, which choose the named target every time) of reach_and_drag or slide_block_to_color_target in the evaluation journals (`rvt2 eval`'s
-episodes.jsonl, or its gzip copy) is rebuilt from its seed and variation, which lay out the scene as the
+Each policy episode (or the oracle's: the expert's keyframes, which choose the named target every time) of
+reach_and_drag or slide_block_to_color_target in the evaluation journals (`rvt2 eval`'s episodes.jsonl, or its
+gzip copy) is rebuilt from its seed and variation, which lay out the scene as the
 evaluation saw it. The push is the first move between two keyframes near the table (both under
 `SWEEP_HEIGHT_M`) longer than `SWEEP_MIN_M`: the stick dragging the cube, or the closed fingers sliding the
 block. The chosen target is the one whose direction from the object's start is nearest to the push's, where
@@ -66,16 +67,18 @@ def push(targets: list[list[float]]) -> np.ndarray | None:
     return None
 
 
+def _bearing(v) -> float:
+    """The direction of a vector on the table (rad)."""
+    return float(np.arctan2(v[1], v[0]))
+
+
 def chosen_target(scene: Layout, move: np.ndarray | None) -> int | None:
     """The target in the push's direction from the object's start, or None where no target is within the
     tolerance (or there was no push)."""
     if move is None:
         return None
-    def bearing(v):
-        return np.arctan2(v[1], v[0])
-
     # the angle between the push and each target's direction, wrapped into [0, pi]
-    off = [abs(np.angle(np.exp(1j * (bearing(move) - bearing(t - scene.start))))) for t in scene.targets]
+    off = [abs(np.angle(np.exp(1j * (_bearing(move) - _bearing(t - scene.start))))) for t in scene.targets]
     best = int(np.argmin(off))
     return best if np.degrees(off[best]) <= CHOICE_TOLERANCE_DEG else None
 
