@@ -5,7 +5,8 @@
         [--previous "LABEL=results.json[#COLUMN]"] [--chart results.png] [--json results.json]
 
 EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluation over all their seeds
-(their episode records are merged and summarised by the same code `rvt2 eval` uses). Several models
+(their episode records are merged and summarised by the same code `rvt2 eval` uses). EVAL_DIR@FIRST-LAST
+takes that evaluation's seeds FIRST to LAST only (one range of a 100-seed evaluation). Several models
 (training seeds) separated by commas are one row entry: their episodes pooled (rate and Wilson interval
 over all of them) and the spread between the models' rates beside it. oracle.json is
 `python -m benchmarks.oracle_bench --json ...` (oracle and expert on the same seeds); the older pair
@@ -28,12 +29,24 @@ from rvt2cli.eval.report import build_report, wilson_interval
 def load_policy(dirs: str) -> dict:
     """One report from one or more eval folders (their episodes merged)."""
     records, seeds = [], []
-    for folder in dirs.split("+"):
+    for item in dirs.split("+"):
+        folder, first, last = seed_range(item)
         plan, episodes = read_journal(journal_of(Path(folder)))
-        records += [e for e in episodes if e["source"] == "policy"]
-        seeds.append(plan["seed"])
+        records += [e for e in episodes if e["source"] == "policy" and first <= e["seed"] <= last]
+        seeds.append(max(plan["seed"], first))
     per_task = len({r["seed"] for r in records if r["task"] == records[0]["task"]})
     return build_report(records, {"seed": min(seeds), "episodes_per_task": per_task})
+
+
+def seed_range(item: str) -> tuple[str, float, float]:
+    """EVAL_DIR or EVAL_DIR@FIRST-LAST -> (the folder, the first and last seed taken)."""
+    folder, at, seeds = item.rpartition("@")
+    if not at:
+        return item, float("-inf"), float("inf")
+    first, _, last = seeds.partition("-")
+    if not (first.isdigit() and last.isdigit()) or int(first) > int(last):
+        raise SystemExit(f"results_table: {item!r}: give seeds as EVAL_DIR@FIRST-LAST, e.g. evals/x@10000-10049")
+    return folder, int(first), int(last)
 
 
 def journal_of(folder: Path) -> Path:

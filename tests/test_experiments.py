@@ -57,20 +57,21 @@ def test_published_raw_files_are_in_the_tree(path):
 
 def test_evaluation_ranges_and_extra_evaluations(tmp_path):
     """rvt2_18: 100 seeds as two disjoint ranges of 50, each its own report, the paraphrases on the first, and
-    two tasks with stage 1's point kept where stage 2's box is nearly empty."""
+    four tasks with stage 2's point even where its box is nearly empty (the published model's setting)."""
     run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=60))
     evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
     assert [(a.seed, a.episodes, Path(a.out).name, a.paraphrases, a.workers) for a in evals] == [
-        (10000, 50, "seed0_from10000", False, 19), (10050, 50, "seed0_from10050", False, 19),
-        (10000, 50, "seed0_paraphrases", True, 18), (10000, 100, "seed0_stage2_min_points", False, 4)]
-    # run at the same time, the workers shared by episodes: 900, 900, 900 and 2 tasks x 100
-    assert evals[-1].tasks == ("stack_blocks", "place_cups") and evals[-1].stage2_min_points == 200
+        (10000, 50, "seed0_from10000", False, 18), (10050, 50, "seed0_from10050", False, 17),
+        (10000, 50, "seed0_paraphrases", True, 17), (10000, 100, "seed0_stage2_everywhere", False, 8)]
+    # run at the same time, the workers shared by episodes: 900, 900, 900 and 4 tasks x 100
+    assert len(evals[-1].tasks) == 4 and "stack_blocks" in evals[-1].tasks and evals[-1].stage2_min_points == 0
+    assert all(a.stage2_min_points is None for a in evals[:-1])  # the checkpoint's own
 
 
 def test_an_interrupted_evaluation_resumes_with_workers_for_the_episodes_it_has_left(tmp_path):
     """rvt2_18's first range as the first GPU machine left it, 367 of its 900 episodes run (the first lines of
     the published journal, which resumed it): it resumes, and the four evaluations share 60 workers as
-    533 : 900 : 900 : 200 episodes."""
+    533 : 900 : 900 : 400 episodes."""
     journal = tmp_path / "evals" / "seed0_from10000" / "episodes.jsonl"
     journal.parent.mkdir(parents=True)
     published = runner.REPOSITORY / "benchmarks/results/rvt2_18_h100x4/evals/seed0_from10000/episodes.jsonl.gz"
@@ -78,8 +79,8 @@ def test_an_interrupted_evaluation_resumes_with_workers_for_the_episodes_it_has_
     run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=60))
     evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
     assert [(Path(a.out).name, a.workers, a.resume) for a in evals] == [
-        ("seed0_from10000", 13, True), ("seed0_from10050", 21, False), ("seed0_paraphrases", 21, False),
-        ("seed0_stage2_min_points", 5, False)]
+        ("seed0_from10000", 11, True), ("seed0_from10050", 20, False), ("seed0_paraphrases", 20, False),
+        ("seed0_stage2_everywhere", 9, False)]
 
 
 def test_workers_are_shared_in_proportion_to_episodes():

@@ -1,10 +1,12 @@
 """`rvt2 export`: ONNX and TorchScript policies that match the PyTorch policy on recorded observations."""
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import assert_one_line_error
@@ -103,3 +105,32 @@ def test_a_stopped_training_crosses_in_pieces_and_goes_on_there_as_if_never_stop
         r = subprocess.run([sys.executable, str(script), *command], capture_output=True, text=True, timeout=300)
     assert r.returncode == 1 and "cannot be trained on" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "again").exists()
+
+
+def test_an_export_keeps_stage_1s_point_where_the_checkpoint_says_stage_2_saw_too_little(tiny_checkpoint, tmp_path):
+    """A checkpoint's `stage2_min_points` travels into its export: with a minimum no box reaches, the exported
+    policy answers stage 1's point, as the PyTorch policy does, and not stage 2's."""
+    from rvt2cli.export.deployable import example_inputs
+    from rvt2cli.export.exporter import load_exported
+    from rvt2cli.model.observation import Observation, aim_vector
+    from rvt2cli.render.workspace import center_and_half
+    from rvt2cli.train.checkpoint import load_policy, resolve
+
+    blind = tmp_path / "checkpoint"
+    shutil.copytree(resolve(tiny_checkpoint[0]), blind)
+    config = json.loads((blind / "config.json").read_text())
+    config["model"]["stage2_min_points"] = 10**9
+    (blind / "config.json").write_text(json.dumps(config))
+    report = export_policy(str(blind), "torchscript", str(tmp_path / "policy"), max_points=20000)
+    assert report.max_position_error_m <= 0.001 and report.rotation_bins_equal
+    manifest = json.loads((tmp_path / "policy" / "manifest.json").read_text())
+    assert manifest["config"]["stage2_min_points"] == 10**9
+
+    policy, _ = load_policy(blind, render_backend="torch", stage2_min_points=0)  # both stages' points, to compare
+    xyz, rgb, num_points, proprio, lang, bounds, aim = inputs = example_inputs(policy.cfg, 20000)
+    center, half = center_and_half(bounds)
+    pred = policy.predict(Observation(points=(xyz - center) / half, rgb=rgb, num_points=num_points, proprio=proprio,
+                                      lang=lang, aim=aim_vector(aim, proprio[:, 0] > 0.5, half)))
+    stage1, stage2 = ((p * half + center).numpy()[0] for p in (pred.stage1_position, pred.position))
+    exported = load_exported(tmp_path / "policy", manifest)(*inputs)[0][0]
+    assert np.abs(exported - stage1).max() <= 0.001 < np.abs(exported - stage2).max()

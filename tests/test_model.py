@@ -221,7 +221,7 @@ def test_stage_1s_point_is_kept_where_stage_2s_box_holds_too_few_points():
     nearly empty keeps stage 1's point; one with enough points there takes stage 2's."""
     torch.manual_seed(0)
     obs = observation(SMALL, batch=2)
-    policy = RVT2Policy(SMALL).eval()
+    policy = RVT2Policy(replace(SMALL, stage2_min_points=0)).eval()   # stage 2's point everywhere
     first = policy.predict(obs)
     counts = points_in_box(obs, first.stage1_position, 1.0 / SMALL.zoom)
     inside = ((obs.points - first.stage1_position[:, None]).abs() <= 1.0 / SMALL.zoom).all(-1)

@@ -65,6 +65,19 @@ def test_two_published_ranges_are_one_evaluation_of_100_seeds_per_task():
         assert report["tasks"][task]["policy"]["successes"] == sum(r["success"] for r in mine)
 
 
+def test_a_range_of_an_evaluations_seeds_is_read_as_that_range_alone():
+    """EVAL_DIR@FIRST-LAST: the second 50 seeds of a 100-seed evaluation, counted as the journal has them."""
+    folder = REPOSITORY / "benchmarks" / "results" / "stage2_min_points_h200x2" / "eval_all18_min200"
+    [second] = results_table.load_models(f"{folder}@10050-10099")
+    records = [json.loads(line) for line in gzip.open(folder / "episodes.jsonl.gz", "rt").read().splitlines()[1:]]
+    assert second["seed"] == 10050 and second["episodes_per_task"] == 50
+    for task in tasks_of_set("rlbench18"):
+        mine = [r for r in records if r["task"] == task and r["seed"] >= 10050]
+        assert len(mine) == 50 and second["tasks"][task]["policy"]["successes"] == sum(r["success"] for r in mine)
+    with pytest.raises(SystemExit, match="FIRST-LAST"):
+        results_table.load_models(f"{folder}@10050")
+
+
 def test_a_table_without_oracle_and_expert_columns_is_refused_in_one_line(monkeypatch, capsys, tmp_path):
     monkeypatch.setattr("sys.argv", ["results_table", "--policy", f"x={tmp_path}", "--oracle", str(tmp_path)])
     with pytest.raises(SystemExit) as exit_:

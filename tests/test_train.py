@@ -11,9 +11,10 @@ from conftest import TINY_TRAIN, assert_one_line_error
 from rvt2cli.cli import build_parser
 from rvt2cli.cli.train import options_from
 from rvt2cli.errors import UserError
+from rvt2cli.model.config import STAGE2_MIN_POINTS
 from rvt2cli.train.checkpoint import load_checkpoint, load_policy
 from rvt2cli.train.metrics import prediction_errors
-from rvt2cli.train.trainer import TrainOptions, train
+from rvt2cli.train.trainer import TrainOptions, model_config, train
 
 pytestmark = pytest.mark.sim
 
@@ -51,14 +52,19 @@ def test_resume_reproduces_the_same_losses(tiny_dataset, tmp_path):
     (tmp_path / "c").mkdir()
     import shutil
 
-    shutil.copytree(tmp_path / "a" / "checkpoints" / "step_0000003", tmp_path / "c" / "checkpoints" / "step_0000003")
+    copy = tmp_path / "c" / "checkpoints" / "step_0000003"
+    shutil.copytree(tmp_path / "a" / "checkpoints" / "step_0000003", copy)
     (tmp_path / "c" / "last").write_text("checkpoints/step_0000003\n")
+    # as a checkpoint written before `stage2_min_points` existed: the resumed run keeps that older behaviour
+    config = json.loads((copy / "config.json").read_text())
+    del config["model"]["stage2_min_points"], config["options"]["stage2_min_points"]
+    (copy / "config.json").write_text(json.dumps(config))
     resumed = train(TrainOptions(out=str(tmp_path / "c"), resume=True, **opts), say=lambda *_: None)
     assert first.losses == straight.losses[:3]
     assert resumed.losses == straight.losses[3:]
-    a = load_checkpoint(tmp_path / "a").weights
-    c = load_checkpoint(tmp_path / "c").weights
-    assert all(torch.equal(a[k], c[k]) for k in a)
+    a, c = load_checkpoint(tmp_path / "a"), load_checkpoint(tmp_path / "c")
+    assert all(torch.equal(a.weights[k], c.weights[k]) for k in a.weights)
+    assert a.config.stage2_min_points == STAGE2_MIN_POINTS and c.config.stage2_min_points == 0
 
 
 def test_a_time_limit_saves_and_stops_and_resume_finishes_the_same_run(tiny_dataset, tmp_path, cli):
@@ -85,6 +91,19 @@ def test_a_time_limit_saves_and_stops_and_resume_finishes_the_same_run(tiny_data
     assert f"Continue with: rvt2 train --out {tmp_path / 'c'} --resume" in r.stdout
     resume = build_parser().parse_args(["train", "--out", str(tmp_path / "c"), "--resume"])
     assert options_from(resume).time_limit is None   # the limit was the command's, not the run's
+
+
+def test_stage2_min_points_is_the_configs_unless_the_run_sets_it():
+    """`rvt2 train --stage2-min-points N` goes into the checkpoint's model config (an inference setting);
+    without it, the named config's; a one-stage config has no stage 2 to set it for."""
+    def config(*flags):
+        return model_config(options_from(build_parser().parse_args(["train", "--data", "d", "--out", "o", *flags])))
+
+    assert config().stage2_min_points == config("--config", "small").stage2_min_points == STAGE2_MIN_POINTS > 0
+    assert config("--stage2-min-points", "0").stage2_min_points == 0
+    assert config("--stage2-min-points", "50").network() == config().network()  # the same network to train
+    with pytest.raises(UserError, match="one stage.*--stage2-min-points"):
+        config("--config", "rvt", "--stage2-min-points", "50")
 
 
 def test_resume_with_another_config_is_refused(tiny_checkpoint, tiny_dataset):

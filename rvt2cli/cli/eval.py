@@ -46,7 +46,8 @@ def register(subparsers) -> None:
                         "episodes.jsonl), run through this executor (its seeds within --seed and --episodes)")
     p.add_argument("--stage2-min-points", type=NON_NEGATIVE, metavar="N",
                    help="keep stage 1's point where fewer than N cloud points lie in stage 2's zoomed box (it saw nothing "
-                        "to place the keyframe by; default: the checkpoint's, 0 for models trained so far)")
+                        "to place the keyframe by; default: the checkpoint's, 200 for models trained with the default since it "
+                        "became one, 0 for those trained before)")
     p.add_argument("--batch-size", type=COUNT, default=8, help="--offline: observations per forward pass (default 8)")
     p.add_argument("--out", help="output folder (default: CHECKPOINT/eval, or CHECKPOINT/offline)")
     p.add_argument("--device", default=E.device, help="policy device (default cpu)")

@@ -39,6 +39,10 @@ def register(subparsers) -> None:
     p.add_argument("--zoom", type=number(1.0, 16.0), metavar="Z",
                    help="two-stage configs: stage 2 sees 1/Z of the workspace around its centre (default 4, as the "
                         "paper: +-10 cm of the default 0.8 m workspace); 2 sees +-20 cm at half the resolution")
+    p.add_argument("--stage2-min-points", type=NON_NEGATIVE, metavar="N",
+                   help="two-stage configs, at inference: keep stage 1's point where fewer than N cloud points lie in "
+                        "stage 2's zoomed box (it saw nothing to place the keyframe by); stored in the checkpoint, "
+                        "`rvt2 eval --stage2-min-points` overrides it (default 200; 0: always stage 2's, as the paper)")
     p.add_argument("--coarse-action-features", action="store_true",
                    help="two-stage configs: the rotation, gripper and collision heads also read stage 1's features, "
                         "which see the whole workspace, not only stage 2's box (for targets far from what defines "

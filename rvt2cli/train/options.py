@@ -18,6 +18,7 @@ class TrainOptions:
     coarse_action_features: bool = False  # the action head also reads stage 1's features (ModelConfig)
     aim_held: bool = False           # once it holds, aim the task's aim_offset instead of the TCP (tasks/*.toml)
     zoom: float | None = None        # stage 2 covers 1/zoom of the workspace; None: the config's (4, as the paper)
+    stage2_min_points: int | None = None  # inference, stored in the checkpoint (ModelConfig); None: the config's (200)
     steps: int = 10_000
     batch_size: int = 24
     lr: float | None = None          # default: 1.25e-5 x total batch (the paper's rule)
@@ -63,7 +64,8 @@ class TrainOptions:
 
 
 # Options a resumed run must keep (they decide the data, the model, the optimiser or the schedule).
-RUN_DEFINING = ("data", "config", "rotation_bins", "rotation_sigma", "coarse_action_features", "aim_held", "zoom", "steps", "batch_size", "lr", "weight_decay", "warmup", "clip", "max_points", "augment",
+RUN_DEFINING = ("data", "config", "rotation_bins", "rotation_sigma", "coarse_action_features", "aim_held", "zoom",
+                "stage2_min_points", "steps", "batch_size", "lr", "weight_decay", "warmup", "clip", "max_points", "augment",
                 "seed", "val_episodes", "max_bad_steps", "include_failures", "episodes_per_task", "keyframe_starts_only",
                 "start_share", "task_weights", "task_set",
                 "cameras", "amp", "eight_bit")

@@ -131,24 +131,27 @@ def resolve_options(opts: TrainOptions) -> tuple[TrainOptions, Checkpoint | None
             raise UserError(f"--{name.replace('_', '-')} {getattr(opts, name)!r} differs from the run's "
                             f"{getattr(stored, name)!r} in {run_dir}; a resumed run keeps its options: "
                             "leave the flag out, or train into a new --out")
-    if ckpt.config != model_config(opts):
+    if ckpt.config.network() != model_config(opts).network():
         raise UserError(f"{run_dir}: was trained with config '{ckpt.config.name}'; resume with --config "
                         f"{ckpt.config.name} or train into a new --out")
     return opts, ckpt
 
 
 def model_config(opts: TrainOptions) -> ModelConfig:
-    """The named config, with the run's own rotation bins and targets, action features and zoom where it sets them."""
+    """The named config, with the run's own rotation bins and targets, action features, zoom and stage-2
+    point minimum where it sets them."""
     cfg = get_config(opts.config)
     if opts.rotation_bins:
         cfg = replace(cfg, rotation_bins=opts.rotation_bins)
-    if (opts.coarse_action_features or opts.zoom is not None) and cfg.stages == 1:
-        raise UserError(f"--config {opts.config} has one stage: --zoom and --coarse-action-features need a second "
-                        "stage (--config rvt2 or small)")
+    if (opts.coarse_action_features or opts.zoom is not None or opts.stage2_min_points) and cfg.stages == 1:
+        raise UserError(f"--config {opts.config} has one stage: --zoom, --coarse-action-features and "
+                        "--stage2-min-points need a second stage (--config rvt2 or small)")
     if opts.coarse_action_features:
         cfg = replace(cfg, coarse_action_features=True)
     if opts.zoom is not None:
         cfg = replace(cfg, zoom=opts.zoom)
+    if opts.stage2_min_points is not None:
+        cfg = replace(cfg, stage2_min_points=opts.stage2_min_points)
     return replace(cfg, rotation_sigma_deg=opts.rotation_sigma) if opts.rotation_sigma is not None else cfg
 
 
@@ -500,6 +503,8 @@ def setup_training(opts: TrainOptions, say=print, ddp_graph_split: bool = False)
     cfg = model_config(opts)
     run_dir = Path(opts.out)
     opts, resume = resolve_options(opts)
+    if resume is not None:  # its inference settings too: a run begun before a config's default changed keeps its own
+        cfg = resume.config
     total_batch = opts.batch_size * world
     lr = opts.lr if opts.lr is not None else 1.25e-5 * total_batch
     warmup = max(1, min(opts.warmup, opts.steps // 10))
