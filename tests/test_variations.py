@@ -147,6 +147,25 @@ def test_instruction_swap_scores_each_observation_under_every_variations_words(s
         assert all(len(others) == 3 for others in row["others_mm"])
         assert (row["chosen"] is None) == (row["deciding"] == 0)
 
+    # benchmarks/phrasing_bench.py on the same run: each keyframe start under every phrasing of its own variation
+    from benchmarks.phrasing_bench import phrasing_report, phrasings
+    from rvt2cli.train.samples import load_samples
+
+    task = get_task(TASK)
+    variation, words = phrasings(TASK, task.instruction(0, 2)[0])
+    assert variation == 2 and [t for t, _, _ in words] == list(task.instructions) + list(task.paraphrases)
+    assert all(text == t.format(**task.variation_values(2)) and held == (t in task.paraphrases) for t, text, held in words)
+    assert phrasings(TASK, "a phrasing the task does not have") == (-1, [])
+    rows = phrasing_report(str(tmp_path / "run"), [str(slide_demos)])["rows"]
+    starts = load_samples(episode_paths([str(slide_demos)]), progress=False, keyframe_starts_only=True)
+    for v in range(4):
+        mine = [i for i in range(len(starts)) if starts.instructions[starts.instruction_index[i]] in
+                [t.format(**task.variation_values(v)) for t in task.instructions]]
+        for template, _, held_out in phrasings(TASK, task.instruction(0, v)[0])[1]:
+            its = [r for r in rows if r["variation"] == v and r["phrasing"] == template]
+            assert sum(r["samples"] for r in its) == len(mine) and all(r["held_out"] == held_out for r in its)
+            assert all(r["error_mm"] >= 0 and 0 <= r["far"] <= r["samples"] for r in its)
+
 
 def test_record_one_variation(tmp_path):
     summary = record(TASK, 2, tmp_path, seed=10, options=RecordOptions(**{**SMALL.__dict__, "variations": "3"}))
@@ -242,8 +261,15 @@ def test_oracle_eval_reports_per_variation_with_paraphrases(tmp_path):
     per = result.report["tasks"][TASK]["oracle"]["variations"]
     assert set(per) == {"0", "1", "2", "3"} and all(v["episodes"] == 1 for v in per.values())
     assert sum(v["successes"] for v in per.values()) == result.report["tasks"][TASK]["oracle"]["successes"]
+    # per phrasing: each episode under the held-out template that made its instruction
+    phrasings = result.report["tasks"][TASK]["oracle"]["phrasings"]
+    assert set(phrasings) <= set(task.paraphrases) and all(v["held_out"] for v in phrasings.values())
+    for template, entry in phrasings.items():
+        made = [e for e in episodes if e["instruction"] == template.format(**task.variation_values(e["variation"]))]
+        assert entry["episodes"] == len(made) and entry["successes"] == sum(e["success"] for e in made)
     markdown = (tmp_path / "eval.md").read_text()
     assert "Success per variation" in markdown and "color=yellow" in markdown and "held-out paraphrases" in markdown
+    assert len(phrasings) > 1 and "Success per phrasing" in markdown and f"{next(iter(phrasings))} (held out)" in markdown
 
 
 class OtherVariationsKeyframes(KeyframeSource):

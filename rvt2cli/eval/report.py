@@ -99,6 +99,7 @@ def summarize(records: list[dict], insertion: bool = False) -> dict:
         "pose_error_free": pose_errors([s for s in steps if not s["ignore_collisions"]]),
         "pose_error_contact": pose_errors([s for s in steps if s["ignore_collisions"]]),
         "variations": per_variation(records),
+        "phrasings": per_phrasing(records),
     }
 
 
@@ -132,6 +133,42 @@ def build_report(records: list[dict], meta: dict) -> dict:
     for key in ("pose_error", "pose_error_free", "pose_error_contact"):
         report[key] = {s: per_source[s][key] for s in sources}
     return report
+
+
+def per_phrasing(records: list[dict]) -> dict[str, dict]:
+    """Success per instruction template (`phrasing`), e.g. "open {drawer} drawer": which phrasings a policy
+    reads, over all the variations they name. An instruction no template of the task makes (a user's own
+    `--instruction`, a task this rvt2 does not know) counts under its own text."""
+    out = {}
+    for r in records:
+        key = phrasing(r["task"], r.get("variation", 0), r.get("instruction") or "-")
+        entry = out.setdefault(key, {"episodes": 0, "successes": 0, "wrong": 0,
+                                     "held_out": key in _templates(r["task"])[1]})
+        entry["episodes"] += 1
+        entry["successes"] += bool(r["success"])
+        entry["wrong"] += r.get("wrong") is not None
+    for entry in out.values():
+        entry["success_rate"] = entry["successes"] / entry["episodes"]
+    return dict(sorted(out.items()))
+
+
+def phrasing(task: str, variation: int, instruction: str) -> str:
+    """The template (trained or held-out paraphrase) that makes `instruction` for this variation, or the text itself."""
+    trained, held_out = _templates(task)
+    try:
+        values = get_task(task).variation_values(variation)
+    except (UserError, IndexError):
+        return instruction
+    return next((t for t in trained + held_out if t.format(**values) == instruction), instruction)
+
+
+def _templates(task: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """A task's instruction templates and its held-out paraphrases (none for a task this rvt2 does not know)."""
+    try:
+        known = get_task(task)
+    except UserError:
+        return (), ()
+    return tuple(known.instructions), tuple(known.paraphrases)
 
 
 def _is_insertion(task: str) -> bool:
@@ -211,6 +248,18 @@ def markdown(report: dict) -> str:
             for s in sources:
                 for v, r in per.get(s, {}).get("variations", {}).items():
                     lines.append(f"| {task} | {s} | {v} | {_values(task, int(v))} | {r['successes']}/{r['episodes']} "
+                                 f"({r['success_rate']:.0%}) | {r['wrong']} |")
+    worded = {task: per for task, per in report["tasks"].items()
+              if any(len(r.get("phrasings", {})) > 1 for r in per.values())}
+    if worded:
+        lines += ["", "Success per phrasing (tasks with several; each template over the variations it names; "
+                  "held out: a paraphrase no training demo used):", "", "| task | source | phrasing | success | wrong |",
+                  "|---|---|---|---|---|"]
+        for task, per in worded.items():
+            for s in sources:
+                for text, r in per.get(s, {}).get("phrasings", {}).items():
+                    mark = " (held out)" if r["held_out"] else ""
+                    lines.append(f"| {task} | {s} | {text}{mark} | {r['successes']}/{r['episodes']} "
                                  f"({r['success_rate']:.0%}) | {r['wrong']} |")
     lines += ["", "Why episodes failed (rvt2cli.eval.taxonomy), per task and source; for insertion tasks the "
               "median gap to success, mm, of the failed episodes' closest approach with the object in hand:", "",
