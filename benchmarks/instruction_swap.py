@@ -25,6 +25,7 @@ from collections import defaultdict
 import numpy as np
 import torch
 
+from rvt2cli.errors import UserError
 from rvt2cli.eval.offline import load_demos_for
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.tasks import get_task
@@ -106,21 +107,36 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def demo_parser(doc: str) -> argparse.ArgumentParser:
+    """The command line of a benchmark that predicts recorded demos under other words (this one, phrasing_bench)."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("demos", nargs="+", help="demo files or folders")
     parser.add_argument("--checkpoint", required=True)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--decides-mm", type=float, default=20.0)
     parser.add_argument("--json")
-    args = parser.parse_args(argv)
-    report = swap_report(args.checkpoint, args.demos, args.device, args.batch_size, args.decides_mm)
-    print(markdown(report), end="")
-    if args.json:
-        with open(args.json, "w") as f:
+    return parser
+
+
+def run(name: str, build, table, json_path: str | None) -> dict:
+    """`build()`'s report printed as `table(report)` and written to `json_path`; a bad input is one line."""
+    try:
+        report = build()
+    except UserError as e:
+        raise SystemExit(f"{name}: {e}") from None
+    print(table(report), end="")
+    if json_path:
+        with open(json_path, "w") as f:
             json.dump(report, f, indent=2)
     return report
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = demo_parser(__doc__)
+    parser.add_argument("--decides-mm", type=float, default=20.0)
+    args = parser.parse_args(argv)
+    return run("instruction_swap", lambda: swap_report(args.checkpoint, args.demos, args.device, args.batch_size,
+                                                       args.decides_mm), markdown, args.json)
 
 
 if __name__ == "__main__":

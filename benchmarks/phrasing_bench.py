@@ -10,16 +10,13 @@ observations), beside the same observations under the trained phrasings. A phras
 moves the keyframes its words decide (which drawer, which block, which button next) and leaves the rest.
 """
 
-import argparse
 import dataclasses
-import json
 from collections import defaultdict
 
 import numpy as np
 import torch
 
-from benchmarks.instruction_swap import predicted_positions
-from rvt2cli.errors import UserError
+from benchmarks.instruction_swap import demo_parser, predicted_positions, run
 from rvt2cli.eval.offline import load_demos_for
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.tasks import get_task
@@ -90,22 +87,9 @@ def markdown(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("demos", nargs="+", help="demo files or folders")
-    parser.add_argument("--checkpoint", required=True)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--json")
-    args = parser.parse_args(argv)
-    try:
-        report = phrasing_report(args.checkpoint, args.demos, args.device, args.batch_size)
-    except UserError as e:
-        raise SystemExit(f"phrasing_bench: {e}") from None
-    print(markdown(report), end="")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=2)
-    return report
+    args = demo_parser(__doc__).parse_args(argv)
+    return run("phrasing_bench", lambda: phrasing_report(args.checkpoint, args.demos, args.device, args.batch_size),
+               markdown, args.json)
 
 
 if __name__ == "__main__":
