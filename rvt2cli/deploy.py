@@ -45,11 +45,15 @@ class KeyframePolicy:
         self.instructions = InstructionCache(lang_tokens, embeddings)
 
     @staticmethod
-    def load(path: str | Path, device: str = "cpu") -> "KeyframePolicy":
+    def load(path: str | Path, device: str = "cpu", stage2_min_points: int | None = None) -> "KeyframePolicy":
+        """A checkpoint (`stage2_min_points` overrides its own) or an exported folder (fixed when exported)."""
         path = Path(path)
         if (path / "manifest.json").is_file():
+            if stage2_min_points is not None:
+                raise UserError(f"{path}: an exported policy keeps the stage-2 point minimum it was exported with; "
+                                "export again with `rvt2 export --stage2-min-points N`")
             return _ExportedPolicy(path)
-        return _CheckpointPolicy(path, device)
+        return _CheckpointPolicy(path, device, stage2_min_points)
 
     def default_task(self, task: str | None) -> str | None:
         """`task`, or the policy's only task when none is given."""
@@ -89,11 +93,11 @@ class KeyframePolicy:
 
 
 class _CheckpointPolicy(KeyframePolicy):
-    def __init__(self, path: Path, device: str):
+    def __init__(self, path: Path, device: str, stage2_min_points: int | None = None):
         from rvt2cli.eval.sources import PolicySource
         from rvt2cli.train.checkpoint import load_policy
 
-        policy, ckpt = load_policy(path, device=device)
+        policy, ckpt = load_policy(path, device=device, stage2_min_points=stage2_min_points)
         super().__init__({t: ckpt.scene_bounds(t) for t in ckpt.tasks}, policy.cfg.lang_tokens, ckpt.instruction_embeddings,
                          ckpt.aim_offsets)
         self.source = PolicySource(policy, ckpt, device)

@@ -134,3 +134,16 @@ def test_an_export_keeps_stage_1s_point_where_the_checkpoint_says_stage_2_saw_to
     stage1, stage2 = ((p * half + center).numpy()[0] for p in (pred.stage1_position, pred.position))
     exported = load_exported(tmp_path / "policy", manifest)(*inputs)[0][0]
     assert np.abs(exported - stage1).max() <= 0.001 < np.abs(exported - stage2).max()
+
+    # `rvt2 export --stage2-min-points 0` overrides the checkpoint's: stage 2's point again
+    export_policy(str(blind), "torchscript", str(tmp_path / "policy0"), max_points=20000, stage2_min_points=0)
+    manifest = json.loads((tmp_path / "policy0" / "manifest.json").read_text())
+    assert manifest["config"]["stage2_min_points"] == 0
+    assert np.abs(load_exported(tmp_path / "policy0", manifest)(*inputs)[0][0] - stage2).max() <= 0.001
+    # deployment: a checkpoint takes the override, an export keeps what it was exported with
+    from rvt2cli.deploy import KeyframePolicy
+    from rvt2cli.errors import UserError
+
+    assert KeyframePolicy.load(blind, stage2_min_points=0).source.policy.cfg.stage2_min_points == 0
+    with pytest.raises(UserError, match="export again with `rvt2 export --stage2-min-points N`"):
+        KeyframePolicy.load(tmp_path / "policy", stage2_min_points=0)

@@ -149,7 +149,10 @@ def is_export(folder: Path) -> bool:
     return isinstance(manifest, dict) and "rvt2_version" in manifest and manifest.get("format") in FORMATS
 
 
-def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000, check_data=()) -> ParityReport:
+def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000, check_data=(),
+                  stage2_min_points: int | None = None) -> ParityReport:
+    """`checkpoint` as one ONNX or TorchScript module in `out`, kept only if it matches the PyTorch policy;
+    `stage2_min_points` overrides the checkpoint's (an inference setting, `ModelConfig.stage2_min_points`)."""
     if fmt not in FORMATS:
         raise UserError(f"unknown format {fmt!r}; choose one of {', '.join(FORMATS)}")
     out_dir = Path(out)
@@ -157,7 +160,7 @@ def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000,
     if previous and not is_export(out_dir):
         raise UserError(f"{out_dir}: exists and is not a previous export (no rvt2 manifest.json); "
                         "export into a new or empty-named folder, e.g. --out policy/")
-    policy, ckpt = load_policy(checkpoint, render_backend="torch")
+    policy, ckpt = load_policy(checkpoint, render_backend="torch", stage2_min_points=stage2_min_points)
     cfg = policy.cfg
     module = DeployablePolicy(policy).eval()
     with atomic_folder(out_dir, replace=previous) as tmp:
@@ -180,7 +183,7 @@ def export_policy(checkpoint: str, fmt: str, out: str, max_points: int = 50_000,
                                     f"token embeddings, first {cfg.lang_tokens} tokens, zero rows after the last token"},
         }
         # parity: the PyTorch policy as training and eval run it (warp renderer) against the export
-        reference_policy, _ = load_policy(checkpoint, render_backend="warp")
+        reference_policy, _ = load_policy(checkpoint, render_backend="warp", stage2_min_points=stage2_min_points)
         report = check_parity(DeployablePolicy(reference_policy).eval(), load_exported(tmp, manifest),
                               _parity_inputs(ckpt, cfg, max_points, check_data))
         if report.max_position_error_m > POSITION_TOLERANCE or not report.rotation_bins_equal or not report.gripper_equal:
