@@ -141,9 +141,8 @@ def per_phrasing(records: list[dict]) -> dict[str, dict]:
     `--instruction`, a task this rvt2 does not know) counts under its own text."""
     out = {}
     for r in records:
-        key = phrasing(r["task"], r.get("variation", 0), r.get("instruction") or "-")
-        entry = out.setdefault(key, {"episodes": 0, "successes": 0, "wrong": 0,
-                                     "held_out": key in _templates(r["task"])[1]})
+        key, held_out = phrasing(r["task"], r.get("variation", 0), r.get("instruction") or "-")
+        entry = out.setdefault(key, {"episodes": 0, "successes": 0, "wrong": 0, "held_out": held_out})
         entry["episodes"] += 1
         entry["successes"] += bool(r["success"])
         entry["wrong"] += r.get("wrong") is not None
@@ -152,23 +151,18 @@ def per_phrasing(records: list[dict]) -> dict[str, dict]:
     return dict(sorted(out.items()))
 
 
-def phrasing(task: str, variation: int, instruction: str) -> str:
-    """The template (trained or held-out paraphrase) that makes `instruction` for this variation, or the text itself."""
-    trained, held_out = _templates(task)
-    try:
-        values = get_task(task).variation_values(variation)
-    except (UserError, IndexError):
-        return instruction
-    return next((t for t in trained + held_out if t.format(**values) == instruction), instruction)
-
-
-def _templates(task: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """A task's instruction templates and its held-out paraphrases (none for a task this rvt2 does not know)."""
+def phrasing(task: str, variation: int, instruction: str) -> tuple[str, bool]:
+    """The template (trained, or a held-out paraphrase: True) that makes `instruction` for this variation, or
+    the text itself (False)."""
     try:
         known = get_task(task)
-    except UserError:
-        return (), ()
-    return tuple(known.instructions), tuple(known.paraphrases)
+        values = known.variation_values(variation)
+    except (UserError, IndexError):
+        return instruction, False
+    for template in known.instructions:
+        if template.format(**values) == instruction:
+            return template, False
+    return next(((t, True) for t in known.paraphrases if t.format(**values) == instruction), (instruction, False))
 
 
 def _is_insertion(task: str) -> bool:
