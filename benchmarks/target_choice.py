@@ -2,7 +2,7 @@
 a named colour, the push's direction says which target the policy went for, whether or not the object ended
 on it.
 
-    python -m benchmarks.target_choice JOURNAL... [--source oracle] [--json FILE]
+    python -m benchmarks.target_choice JOURNAL... [--source oracle] [--via] [--json FILE]
 
 Each policy episode (or the oracle's: the expert's keyframes, which choose the named target every time) of
 reach_and_drag or slide_block_to_color_target in the evaluation journals (`rvt2 eval`'s episodes.jsonl, or its
@@ -13,6 +13,11 @@ block. The chosen target is the one whose direction from the object's start is n
 that is within `CHOICE_TOLERANCE_DEG` (else the episode made no clear choice). Reported per task: how often
 the chosen target is the named one, against chance (one in the number of targets), and the success of the
 episodes that chose it.
+
+`--via`: the policy learnt from experts that stop above the named target before the push (`expert_via_target`,
+`experiments/rvt2_18_colour_via.toml`). Their stop is the keyframe two before the push's start (then come the
+hover above the push's start and the descent onto it); the report also says how often the policy's stop was
+nearest the named target and how often the push then went for the target it had stopped above.
 """
 
 import argparse
@@ -31,6 +36,7 @@ from rvt2cli.tasks import get_task
 SWEEP_HEIGHT_M = 0.03      # both keyframes of the push this close to the table (the TCP's height)
 SWEEP_MIN_M = 0.05         # and this far apart on the table
 CHOICE_TOLERANCE_DEG = 20  # the targets lie 35 (reach_and_drag) and 90 (slide_block) degrees apart
+STOP_MIN_HEIGHT_M = 0.08   # the via experts stop 0.10-0.12 m high (--via)
 TASKS = ("reach_and_drag", "slide_block_to_color_target")
 
 
@@ -57,14 +63,27 @@ def layout(task_name: str, scene) -> Layout:
     raise UserError(f"{task_name}: target_choice knows {' and '.join(TASKS)}")
 
 
+def _sweep_start(targets: list[list[float]]) -> int | None:
+    """The index of the keyframe target where the first sweep over the table starts, or None."""
+    for i, (a, b) in enumerate(zip(targets, targets[1:])):
+        if a[2] < SWEEP_HEIGHT_M and b[2] < SWEEP_HEIGHT_M and np.linalg.norm(np.subtract(b[:2], a[:2])) > SWEEP_MIN_M:
+            return i
+    return None
+
+
 def push(targets: list[list[float]]) -> np.ndarray | None:
     """The first sweep over the table among an episode's keyframe targets (xy, m), or None."""
-    for a, b in zip(targets, targets[1:]):
-        if a[2] < SWEEP_HEIGHT_M and b[2] < SWEEP_HEIGHT_M:
-            move = np.subtract(b[:2], a[:2])
-            if np.linalg.norm(move) > SWEEP_MIN_M:
-                return move
-    return None
+    i = _sweep_start(targets)
+    return None if i is None else np.subtract(targets[i + 1][:2], targets[i][:2])
+
+
+def via_stop(scene: Layout, targets: list[list[float]]) -> int | None:
+    """The target nearest the stop the via experts make, the keyframe two before the push's start (see the
+    module's docstring), or None where there is no push or that keyframe is lower than a stop."""
+    start = _sweep_start(targets)
+    if start is None or start < 2 or targets[start - 2][2] < STOP_MIN_HEIGHT_M:
+        return None
+    return int(np.argmin([np.linalg.norm(np.subtract(targets[start - 2][:2], t)) for t in scene.targets]))
 
 
 def _bearing(v) -> float:
@@ -83,10 +102,10 @@ def chosen_target(scene: Layout, move: np.ndarray | None) -> int | None:
     return best if np.degrees(off[best]) <= CHOICE_TOLERANCE_DEG else None
 
 
-def episode_choices(envs: dict, records: list[dict], source: str = "policy") -> list[dict]:
+def episode_choices(envs: dict, records: list[dict], source: str = "policy", via: bool = False) -> list[dict]:
     """`envs`: each task's environment (`rvt2cli.record.scene.make_env`). One row per episode of `source` (policy
     or oracle) of the two tasks: its seed, variation, success, the targets' colours, the named and the chosen
-    target (None: no clear choice)."""
+    target (None: no clear choice), and with `via` the target of its stop (`via_stop`)."""
     from rvt2cli.record.scene import set_variation
     from rvt2cli.runtime import seed_everything
 
@@ -99,9 +118,11 @@ def episode_choices(envs: dict, records: list[dict], source: str = "policy") -> 
         set_variation(task_env, r["variation"])
         task_env.reset(seed=r["seed"])
         scene = layout(r["task"], task_env.unwrapped)
-        chosen = chosen_target(scene, push([s["target"] for s in r["steps"]]))
+        targets = [s["target"] for s in r["steps"]]
         rows.append({"task": r["task"], "seed": r["seed"], "variation": r["variation"], "success": bool(r["success"]),
-                     "targets": len(scene.targets), "colours": scene.colours, "named": scene.named, "chosen": chosen})
+                     "targets": len(scene.targets), "colours": scene.colours, "named": scene.named,
+                     "chosen": chosen_target(scene, push(targets)),
+                     "stopped_above": via_stop(scene, targets) if via else None})
     return rows
 
 
@@ -116,6 +137,10 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
                      "named_chosen_interval": [low, high], "chance": 1.0 / mine[0]["targets"],
                      "success": sum(r["success"] for r in mine),
                      "success_when_named_chosen": sum(r["success"] for r in named)}
+        stops = [r for r in mine if r["stopped_above"] is not None]
+        out[task].update(stops=len(stops), stops_above_named=sum(r["stopped_above"] == r["named"] for r in stops),
+                         pushes_after_stop=sum(r["chosen"] is not None for r in stops),
+                         pushes_to_stop_target=sum(r["chosen"] == r["stopped_above"] for r in stops))
     return out
 
 
@@ -123,6 +148,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("journals", nargs="+", help="evaluation journals (episodes.jsonl or episodes.jsonl.gz)")
     p.add_argument("--source", choices=("policy", "oracle"), default="policy", help="whose episodes (default policy)")
+    p.add_argument("--via", action="store_true",
+                   help="the policy learnt from experts that stop above the named target: report its stops too")
     p.add_argument("--json", help="write the rows and the summary here too")
     args = p.parse_args(argv)
     records = []
@@ -141,7 +168,7 @@ def main(argv=None) -> int:
     from rvt2cli.record.scene import make_env
 
     envs = {name: make_env(get_task(name), cameras=[]) for name in present}
-    rows = episode_choices(envs, records, args.source)
+    rows = episode_choices(envs, records, args.source, args.via)
     summary = summarise(rows)
     print(f"which target the {args.source}'s push went for; {describe()}")
     print("| task | episodes | a clear choice | the named target chosen | chance | success | success when the named target was chosen |")
@@ -151,8 +178,14 @@ def main(argv=None) -> int:
         share = s["named_chosen"] / s["clear_choices"] if s["clear_choices"] else 0.0
         print(f"| {task} | {s['episodes']} | {s['clear_choices']} | {s['named_chosen']} ({share:.0%}; {low:.0%}-{high:.0%}) "
               f"| {s['chance']:.0%} | {s['success']} | {s['success_when_named_chosen']} |")
+    if args.via:
+        print("\nThe stop above a target before the push (the keyframe two before it):")
+        print("| task | episodes with a stop | nearest the named target | a clear push after it | the push went for the target of the stop |")
+        print("|---|---|---|---|---|")
+        for task, s in summary.items():
+            print(f"| {task} | {s['stops']} | {s['stops_above_named']} | {s['pushes_after_stop']} | {s['pushes_to_stop_target']} |")
     if args.json:
-        Path(args.json).write_text(json.dumps({"machine": describe(), "journals": args.journals, "source": args.source,
+        Path(args.json).write_text(json.dumps({"machine": describe(), "journals": args.journals, "source": args.source, "via": args.via,
                                                "summary": summary, "rows": rows}, indent=2))
     return 0
 

@@ -40,3 +40,15 @@ def test_a_push_between_two_targets_is_no_clear_choice():
     assert target_choice.chosen_target(layout, towards_first) == 0
     assert target_choice.chosen_target(layout, np.array([-0.1, 0.1])) is None  # 45 degrees from each
     assert target_choice.push([[0.0, 0.0, low], [0.0, 0.2, 0.1]]) is None      # it rose: no sweep
+
+
+def test_the_via_stop_is_the_keyframe_two_before_the_push():
+    layout = target_choice.Layout(np.zeros(2), [np.array([-0.2, 0.0]), np.array([0.0, 0.2])], ["red", "blue"], named=0)
+    low = target_choice.SWEEP_HEIGHT_M / 2
+    stop_over_blue, hover, down, pushed = [0.02, 0.19, 0.12], [0.05, 0.0, 0.08], [0.05, 0.0, low], [-0.15, 0.0, low]
+    keyframes = [[0.0, -0.3, 0.1], stop_over_blue, hover, down, pushed]
+    assert target_choice.via_stop(layout, keyframes) == 1           # nearest blue, though the push goes for red
+    assert target_choice.chosen_target(layout, target_choice.push(keyframes)) == 0
+    assert target_choice.via_stop(layout, keyframes[2:]) is None    # nothing two keyframes before the push
+    assert target_choice.via_stop(layout, [[0.02, 0.19, 0.05], hover, down, pushed]) is None  # too low for a stop
+    assert target_choice.via_stop(layout, keyframes[:3]) is None    # no push
