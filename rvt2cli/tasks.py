@@ -62,6 +62,15 @@ class Task:
         index = random.Random(seed).randrange(len(templates))
         return templates[index].format(**self.variation_values(variation)), index
 
+    def phrasings(self, text: str) -> list[str]:
+        """The trained phrasings (`instructions` filled in, each once) of the variation whose instruction `text`
+        is; [text] where it is none of them (a held-out paraphrase, or an instruction written elsewhere)."""
+        for variation in range(self.num_variations):
+            filled = list(dict.fromkeys(t.format(**self.variation_values(variation)) for t in self.instructions))
+            if text in filled:
+                return filled
+        return [text]
+
     def all_instructions(self) -> list[str]:
         return [t.format(**self.variation_values(v)) for v in range(self.num_variations) for t in self.instructions]
 

@@ -203,7 +203,8 @@ import torch
 from rvt2cli.train.trainer import TrainOptions, _distributed, load_data, model_config, read_data
 
 rank, world = _distributed()
-opts = TrainOptions(data=[sys.argv[1]], out=sys.argv[2], config="small", max_points=3000, val_episodes=1, progress=False)
+opts = TrainOptions(data=[sys.argv[1]], out=sys.argv[2], config="small", max_points=3000, val_episodes=1, progress=False,
+                    phrasings="all")
 cfg = model_config(opts)
 shared = load_data(opts, cfg, torch.device("cpu"), False, None, lambda *_: None)
 own = read_data(opts, cfg, torch.device("cpu"), False, None, lambda *_: None)
@@ -214,6 +215,7 @@ for a, b in ((shared.packed, own.packed), (shared.packed_val, own.packed_val)):
         same = torch.equal(value, other) if torch.is_tensor(value) else (value == other).all() if hasattr(value, "all") else value == other
         assert same, (rank, name)
 assert shared.selected == own.selected and shared.samples.episodes == own.samples.episodes
+assert shared.packed.phrasings is not None and int(shared.packed.phrasing_count.max()) == 3  # stack_cube's templates
 assert shared.instructions.as_dict().keys() == own.instructions.as_dict().keys()
 assert (len(shared.samples.xyz) > 0) == (rank == 0)  # the others keep no clouds of their own
 print(f"rank {rank} of {world}: the same {len(shared.packed)} samples")
@@ -222,7 +224,7 @@ print(f"rank {rank} of {world}: the same {len(shared.packed)} samples")
 
 def test_several_processes_train_on_the_data_process_0_read(tiny_dataset, tmp_path, cli):
     """In a several-process run one process reads the episodes; the others receive exactly what reading
-    them gives (packed clouds, targets, split, instructions). Data that cannot be trained on stops every
+    them gives (packed clouds, targets, split, instructions and their phrasings). Data that cannot be trained on stops every
     process with the one-line error, instead of leaving the others waiting."""
     import os
     import subprocess
@@ -588,3 +590,43 @@ def test_compiled_policy_under_ddp_is_traced_as_whole_graphs(tiny_dataset, tmp_p
         dist.destroy_process_group()
         torch._dynamo.config.optimize_ddp = default
         torch._dynamo.reset()
+
+
+def test_phrasings_all_draws_each_phrasing_of_the_demos_variation(tiny_dataset, tmp_path):
+    import numpy as np
+
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.model.config import get_config
+    from rvt2cli.tasks import get_task
+    from rvt2cli.train.batches import make_batch, pack
+    from rvt2cli.train.samples import load_samples, phrasing_table
+
+    samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
+    texts, table, counts = phrasing_table(samples)
+    own = samples.instructions[0]
+    phrasings = get_task("stack_cube").phrasings(own)
+    assert len(phrasings) == 3 and own in phrasings                  # the task's three templates, one variation
+    assert texts[: len(samples.instructions)] == samples.instructions  # the demos' own keep their indices
+    assert {texts[j] for j in table[0][: counts[0]]} == set(phrasings)
+    # each row of this language table holds its own index, so a batch's rows say which phrasing was drawn
+    lang = torch.arange(len(texts), dtype=torch.float32)[:, None, None].expand(len(texts), 2, 4).contiguous()
+    indices = [i for i in range(len(samples)) if samples.instruction_index[i] == 0][:4]
+    cfg = get_config("small")
+
+    def drawn(packed, generator):
+        batch = make_batch(packed, np.repeat(np.arange(len(indices)), 16), cfg, generator)
+        return batch.obs.lang[:, 0, 0].long().tolist()
+
+    with_phrasings = pack(samples, indices, lang, 3000, "cpu", phrasings=(table, counts))
+    first = drawn(with_phrasings, torch.Generator().manual_seed(1))
+    assert set(first) == set(table[0][: counts[0]].tolist())            # every phrasing of the variation, 64 draws
+    assert drawn(with_phrasings, torch.Generator().manual_seed(1)) == first   # deterministic given the seed
+    assert set(drawn(with_phrasings, None)) == {0}                      # validation batches: the demo's own
+    assert set(drawn(pack(samples, indices, lang, 3000, "cpu"), torch.Generator().manual_seed(1))) == {0}  # --phrasings demo
+
+    run = tmp_path / "all"
+    train(TrainOptions(data=[str(tiny_dataset)], out=str(run), steps=2, save_every=2, phrasings="all", **TINY_TRAIN),
+          say=lambda *_: None)
+    ckpt = load_checkpoint(run)
+    assert set(phrasings) <= set(ckpt.instruction_embeddings)          # every phrasing trained on is kept with it
+    assert json.loads((run / "run.json").read_text())["options"]["phrasings"] == "all"

@@ -217,6 +217,14 @@ b = "red"
                'held_out_variations = [0]', "tasks/t.toml")
 
 
+def test_an_instructions_phrasings_are_its_variations_trained_ones():
+    drawer = get_task("open_drawer")
+    assert drawer.phrasings("open top drawer") == ["open top drawer", "grip the top handle and pull the top drawer open",
+                                                   "slide the top drawer open"]
+    assert drawer.phrasings("pull out the top drawer") == ["pull out the top drawer"]   # a paraphrase: never trained
+    assert drawer.phrasings("open it") == ["open it"]
+
+
 
 def test_an_evaluation_plans_the_tasks_in_turns_with_their_variations_drawn_evenly():
     """A stopped evaluation has as many episodes of every task: the jobs go task after task, seed by seed."""

@@ -42,14 +42,19 @@ class PackedSamples:
     hi: np.ndarray
     gripper_open: np.ndarray   # [S] bool: the gripper at the observation (proprio)
     aim_offset: np.ndarray | None = None  # [T, 3] m, TCP frame, per task (rvt2 train --aim-held); None: the TCP
+    phrasings: torch.Tensor | None = None       # [U, K] each instruction's phrasings, indices into lang
+    phrasing_count: torch.Tensor | None = None  # [U] (rvt2 train --phrasings all; `samples.phrasing_table`)
 
     def __len__(self) -> int:
         return len(self.count)
 
 
 def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points: int, device, seed: int = 0,
-         aim_offsets: dict[str, list[float]] | None = None) -> PackedSamples:
-    """`aim_offsets`: task -> aim offset (m, TCP frame) of a policy trained with them (tasks left out: none)."""
+         aim_offsets: dict[str, list[float]] | None = None,
+         phrasings: tuple[np.ndarray, np.ndarray] | None = None) -> PackedSamples:
+    """`aim_offsets`: task -> aim offset (m, TCP frame) of a policy trained with them (tasks left out: none).
+    `phrasings`: each instruction's phrasings and their count (`samples.phrasing_table`), drawn from in
+    training batches."""
     rng = np.random.default_rng(seed)
     n = len(indices)
     xyz = np.zeros((n, max_points, 3), np.float32)
@@ -79,6 +84,8 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
         lo=np.array([samples.bounds[t][:3] for t in samples.tasks]), hi=np.array([samples.bounds[t][3:] for t in samples.tasks]),
         gripper_open=np.array([samples.proprio[i][0] > 0.5 for i in indices], bool),
         aim_offset=None if aim_offsets is None else np.array([aim_offsets.get(t, TCP_AIM) for t in samples.tasks], np.float64),
+        phrasings=None if phrasings is None else torch.from_numpy(phrasings[0]).to(device),
+        phrasing_count=None if phrasings is None else torch.from_numpy(phrasings[1]).to(device),
     )
 
 
@@ -179,8 +186,13 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
     tcp = position if aim is None else aimed_target(position, quaternion, -aim * half[:, None])
     half_t = to_device(half.astype(np.float32), device)[:, None, None]
     points = (xyz - center_t[:, None]) / half_t
+    instruction = packed.instruction[index]
+    if generator is not None and packed.phrasings is not None:  # one of each sample's phrasings, uniformly
+        draw = to_device(torch.rand(len(idx), generator=generator, dtype=torch.float64).numpy(), device)
+        choice = (draw * packed.phrasing_count[instruction]).long()
+        instruction = packed.phrasings[instruction, choice]
     obs = Observation(points=points, rgb=colours(packed.rgb[index]), num_points=packed.count[index],
-                      proprio=packed.proprio[index], lang=packed.lang[packed.instruction[index]],
+                      proprio=packed.proprio[index], lang=packed.lang[instruction],
                       aim=None if aim is None else to_device(aim, device))
     position_cube = ((position - center) / half[:, None]).astype(np.float32)
     euler = quaternion_to_euler(quaternion)

@@ -41,6 +41,8 @@ class TrainOptions:
     start_share: float = 0.0               # this share of each task's draws are keyframe-start samples (0: uniform)
     task_weights: dict[str, float] | None = None  # task -> weight: its share of the draws is weight / sum (others 1); None: uniform
     task_set: str | None = None      # train on the episodes of this named set's tasks only (e.g. rlbench18)
+    phrasings: str = "demo"          # demo: a sample's instruction is its demo's; all: each draw takes one of its
+                                     # variation's trained phrasings (tasks/*.toml's instructions)
     cameras: tuple[str, ...] | None = None  # train on these cameras' points only (e.g. front: the single-camera setting)
     amp: bool = True
     compile: bool = False            # torch.compile the network (H100 training step: 381 -> 560 samples/s)
@@ -67,7 +69,7 @@ class TrainOptions:
 RUN_DEFINING = ("data", "config", "rotation_bins", "rotation_sigma", "coarse_action_features", "aim_held", "zoom",
                 "stage2_min_points", "steps", "batch_size", "lr", "weight_decay", "warmup", "clip", "max_points", "augment",
                 "seed", "val_episodes", "max_bad_steps", "include_failures", "episodes_per_task", "keyframe_starts_only",
-                "start_share", "task_weights", "task_set",
+                "start_share", "task_weights", "task_set", "phrasings",
                 "cameras", "amp", "eight_bit")
 
 

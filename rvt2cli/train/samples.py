@@ -116,6 +116,34 @@ def episode_samples(path: Path, keyframe_starts_only: bool = False, cameras: tup
     return samples
 
 
+def phrasing_table(samples: SampleSet) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """`rvt2 train --phrasings all`: each instruction of the sample set beside the other trained phrasings of
+    its variation (`Task.phrasings`; a task not in tasks/ keeps its own). Returns the instruction table
+    extended by the phrasings no demo used (the set's own entries keep their indices), each instruction's
+    phrasings as indices into that table [U, K] (-1 past its count), and the counts [U]."""
+    from rvt2cli.tasks import all_tasks
+
+    known = all_tasks()
+    task_of = dict(zip(samples.instruction_index, samples.task_index))
+    texts = list(samples.instructions)
+    index = {text: i for i, text in enumerate(texts)}
+    rows = []
+    for i, text in enumerate(samples.instructions):
+        task = known.get(samples.tasks[task_of[i]]) if i in task_of else None
+        row = []
+        for phrasing in task.phrasings(text) if task is not None else [text]:
+            if phrasing not in index:
+                index[phrasing] = len(texts)
+                texts.append(phrasing)
+            row.append(index[phrasing])
+        rows.append(row)
+    counts = np.array([len(r) for r in rows], np.int64)
+    table = np.full((len(rows), int(counts.max(initial=1))), -1, np.int64)
+    for i, row in enumerate(rows):
+        table[i, :len(row)] = row
+    return texts, table, counts
+
+
 def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True,
                  keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None,
                  tasks: list[str] | None = None, workers: int = 1) -> SampleSet:

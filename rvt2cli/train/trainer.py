@@ -39,7 +39,7 @@ from rvt2cli.train.metrics import headline, precision_report, score_predictions,
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
 from rvt2cli.train.options import TrainOptions, conflicts
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
-from rvt2cli.train.samples import SampleSet, load_samples, select_samples
+from rvt2cli.train.samples import SampleSet, load_samples, phrasing_table, select_samples
 from rvt2cli.train.step import StepResult, TrainStep
 from rvt2cli.tasks import aim_offsets, tasks_of_set
 
@@ -276,7 +276,14 @@ def read_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
     if resume:
         known = {**known, **resume.instruction_embeddings}
     cache = InstructionCache(cfg.lang_tokens, known)
-    lang = cache(samples.instructions)
+    phrasings = None
+    if opts.phrasings == "all":
+        texts, table, counts = phrasing_table(samples)
+        lang, phrasings = cache(texts), (table, counts)
+        say(f"phrasings: {len(texts)} instructions for the {len(samples.instructions)} the demos use "
+            f"(--phrasings all: up to {table.shape[1]} per variation)")
+    else:
+        lang = cache(samples.instructions)
     aims = None
     if opts.aim_held:  # a resumed run keeps the offsets it began with, whatever tasks/*.toml says now
         aims = resume.aim_offsets if resume is not None and resume.aim_offsets is not None else aim_offsets(samples.tasks)
@@ -284,7 +291,7 @@ def read_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         raise UserError(f"--aim-held: none of the tasks ({', '.join(samples.tasks)}) declares an aim_offset in its "
                         "tasks/*.toml; add one (m, in the TCP frame) or leave the flag out")
     weights = task_weight_array(opts.task_weights, samples.tasks)
-    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims)
+    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims, phrasings=phrasings)
     packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims) if val_idx else None
     used_episodes = len({samples.episode_index[i] for i in selected})
     say(f"data: {len(selected)} samples from {used_episodes} episodes of {len(samples.tasks)} task(s) "
