@@ -26,12 +26,12 @@ def phrasings(task_name: str, instruction: str) -> tuple[int, list[tuple[str, st
     """The variation `instruction` names and each of its phrasings: (template, text, held out), trained ones
     first. (-1, []) where the instruction is no trained phrasing of the task's (a user's own words)."""
     task = get_task(task_name)
-    for v in range(task.num_variations):
-        values = task.variation_values(v)
-        if instruction in (t.format(**values) for t in task.instructions):
-            return v, ([(t, t.format(**values), False) for t in task.instructions]
-                       + [(t, t.format(**values), True) for t in task.paraphrases])
-    return -1, []
+    v = task.variation_of(instruction)
+    if v is None:
+        return -1, []
+    values = task.variation_values(v)
+    return v, ([(t, t.format(**values), False) for t in task.instructions]
+               + [(t, t.format(**values), True) for t in task.paraphrases])
 
 
 def phrasing_report(checkpoint: str, demos, device: str = "cpu", batch_size: int = 8) -> dict:

@@ -62,14 +62,19 @@ class Task:
         index = random.Random(seed).randrange(len(templates))
         return templates[index].format(**self.variation_values(variation)), index
 
+    def variation_of(self, text: str) -> int | None:
+        """The variation one of whose trained phrasings (`instructions` filled in) `text` is, or None (a held-out
+        paraphrase, or an instruction written elsewhere)."""
+        return next((v for v in range(self.num_variations)
+                     if text in (t.format(**self.variation_values(v)) for t in self.instructions)), None)
+
     def phrasings(self, text: str) -> list[str]:
         """The trained phrasings (`instructions` filled in, each once) of the variation whose instruction `text`
-        is; [text] where it is none of them (a held-out paraphrase, or an instruction written elsewhere)."""
-        for variation in range(self.num_variations):
-            filled = list(dict.fromkeys(t.format(**self.variation_values(variation)) for t in self.instructions))
-            if text in filled:
-                return filled
-        return [text]
+        is; [text] where it is none of them (`variation_of`)."""
+        variation = self.variation_of(text)
+        if variation is None:
+            return [text]
+        return list(dict.fromkeys(t.format(**self.variation_values(variation)) for t in self.instructions))
 
     def all_instructions(self) -> list[str]:
         return [t.format(**self.variation_values(v)) for v in range(self.num_variations) for t in self.instructions]

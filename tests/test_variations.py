@@ -223,6 +223,7 @@ def test_an_instructions_phrasings_are_its_variations_trained_ones():
                                                    "slide the top drawer open"]
     assert drawer.phrasings("pull out the top drawer") == ["pull out the top drawer"]   # a paraphrase: never trained
     assert drawer.phrasings("open it") == ["open it"]
+    assert drawer.variation_of("slide the top drawer open") == 2 and drawer.variation_of("open it") is None
 
 
 
