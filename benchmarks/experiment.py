@@ -15,7 +15,8 @@ other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
               each `[eval.extra.NAME]` table is one more evaluation with its own options (evals/seed0_NAME).
               The phase's evaluations run at the same time, sharing --workers in proportion to the
               episodes each has left (an interrupted one resumes): their workers start once, together,
-              and no core waits for another evaluation's last episodes
+              and no core waits for another evaluation's last episodes. `--evaluations main` runs the
+              evaluation seeds' ranges alone (a machine short of time), the extra ones later by their names
     offline   each run's precision in millimetres on the held-out demos
     oracle    the expert's own keyframes through the same executor, on the evaluation seeds
 
@@ -74,6 +75,7 @@ class Settings:
     gpus: int = 1
     device: str = "cuda"
     training_seeds: tuple[int, ...] | None = None  # None: the experiment's
+    evaluations: tuple[str, ...] | None = None  # the eval phase's evaluations by name ("main", extras'); None: all
 
 
 def resolve(name: str) -> Path:
@@ -149,19 +151,28 @@ def options(table: dict) -> list[str]:
     return argv
 
 
-def evaluations(evaluate: dict) -> list[tuple[str, int, int, dict]]:
+MAIN_EVALUATION = "main"  # the evaluation seeds' ranges; the extra evaluations go by their [eval.extra.NAME]
+
+
+def evaluations(evaluate: dict, chosen: tuple[str, ...] | None = None) -> list[tuple[str, int, int, dict]]:
     """(folder suffix, episodes per task, first seed, options) of each evaluation of a trained run: the
-    evaluation seeds, split into `ranges` disjoint ranges reported apart, then each [eval.extra.NAME]."""
+    evaluation seeds, split into `ranges` disjoint ranges reported apart ("main"), then each
+    [eval.extra.NAME]; only those `chosen` names, where given."""
     episodes, first_seed, ranges = evaluate["episodes_per_task"], evaluate.get("first_seed", 10000), evaluate.get("ranges", 1)
-    if ranges == 1:
-        runs = [("", episodes, first_seed, evaluate.get("options", {}))]
-    else:
+    extras = evaluate.get("extra", {})
+    unknown = [name for name in chosen or () if name != MAIN_EVALUATION and name not in extras]
+    if unknown or chosen == ():
+        raise UserError(f"--evaluations {','.join(chosen)}: no evaluation {', '.join(unknown) or 'named'}; "
+                        f"this experiment has {', '.join([MAIN_EVALUATION, *extras])}")
+    runs = []
+    if chosen is None or MAIN_EVALUATION in chosen:
         size = episodes // ranges
-        runs = [(f"_from{first_seed + k * size}", size, first_seed + k * size, evaluate.get("options", {}))
-                for k in range(ranges)]
-    for name, extra in evaluate.get("extra", {}).items():
-        runs.append((f"_{name}", extra["episodes_per_task"], extra.get("first_seed", first_seed),
-                     {**evaluate.get("options", {}), **extra.get("options", {})}))
+        runs = [(f"_from{first_seed + k * size}" if ranges > 1 else "", size, first_seed + k * size,
+                 evaluate.get("options", {})) for k in range(ranges)]
+    for name, extra in extras.items():
+        if chosen is None or name in chosen:
+            runs.append((f"_{name}", extra["episodes_per_task"], extra.get("first_seed", first_seed),
+                         {**evaluate.get("options", {}), **extra.get("options", {})}))
     return runs
 
 
@@ -216,7 +227,7 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                                              "--steps", str(train["steps"]), "--batch-size", str(batch // settings.gpus)]
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
-            runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate)]
+            runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate, settings.evaluations)]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
             # an evaluation of some tasks only (options' `tasks`, as `rvt2 eval --tasks` reads it) runs their episodes alone
             tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts in runs]
@@ -313,6 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gpus", type=int, default=1, help="GPUs to train on through torchrun, the global batch kept (default 1)")
     parser.add_argument("--device", default="cuda", help="the policy's device in evaluation (default cuda)")
     parser.add_argument("--training-seeds", help="comma-separated training seeds instead of the file's (e.g. 0)")
+    parser.add_argument("--evaluations", help="the eval phase's evaluations to run, comma-separated: 'main' (the "
+                        "evaluation seeds' ranges) and [eval.extra.NAME]'s names (default: all)")
     parser.add_argument("--rvt2", default="rvt2", help="the command that runs rvt2 (default rvt2; e.g. 'python3 -m rvt2cli')")
     parser.add_argument("--torchrun", default="torchrun",
                         help="the command that launches training on several GPUs (default torchrun)")
@@ -330,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.out or f"data/experiments/{experiment['name']}")
         settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), torchrun=tuple(shlex.split(args.torchrun)),
                             workers=args.workers, gpus=args.gpus,
-                            device=args.device, training_seeds=seeds)
+                            device=args.device, training_seeds=seeds,
+                            evaluations=tuple(n for n in args.evaluations.split(",") if n) if args.evaluations else None)
         run = commands(experiment, settings, parse_phases(args.phase))
     except UserError as e:
         print(f"experiment: error: {e}", file=sys.stderr)

@@ -68,6 +68,25 @@ def test_evaluation_ranges_and_extra_evaluations(tmp_path):
     assert all(a.stage2_min_points is None for a in evals[:-1])  # the checkpoint's own
 
 
+def test_chosen_evaluations_run_alone_with_every_worker(tmp_path, capsys):
+    """--evaluations main: the two ranges alone, sharing all 60 workers (a machine short of time); the extra
+    evaluations later by name; a name the file lacks is one line that lists the ones it has."""
+    experiment = runner.load(runner.resolve("rvt2_18"))
+
+    def evals(chosen):
+        run = runner.commands(experiment, runner.Settings(out=tmp_path, workers=60, evaluations=chosen))
+        return [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
+
+    assert [(Path(a.out).name, a.seed, a.episodes, a.workers) for a in evals(("main",))] == [
+        ("seed0_from10000", 10000, 50, 30), ("seed0_from10050", 10050, 50, 30)]
+    assert [(Path(a.out).name, a.paraphrases, a.workers) for a in evals(("paraphrases", "stage2_everywhere"))] == [
+        ("seed0_paraphrases", True, 42), ("seed0_stage2_everywhere", False, 18)]
+    assert runner.main(["rvt2_18", "--evaluations", "main,paraphrase"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no evaluation paraphrase; this experiment has main, paraphrases, stage2_everywhere" in err
+    assert len(err.splitlines()) == 1
+
+
 def test_an_interrupted_evaluation_resumes_with_workers_for_the_episodes_it_has_left(tmp_path):
     """rvt2_18's first range as the first GPU machine left it, 367 of its 900 episodes run (the first lines of
     the published journal, which resumed it): it resumes, and the four evaluations share 60 workers as
