@@ -2,6 +2,8 @@
 beyond the arm's reach is approached as near as the arm goes, collision flags mean the same thing in
 every demo, and every failed episode gets one reason."""
 
+import copy
+import gzip
 import json
 from pathlib import Path
 
@@ -14,7 +16,7 @@ from rvt2cli.eval.executor import CLEARANCE, COLLISION_RESOLUTION, REACH_SLACK_M
 from rvt2cli.eval.robot_geometry import RobotGeometry
 from rvt2cli.eval.rollout import _collision_points
 from rvt2cli.eval.sources import OracleSource
-from rvt2cli.eval.taxonomy import REASONS, count_reasons, failure_reason
+from rvt2cli.eval.taxonomy import REASONS, STALL_REPEATS, count_reasons, failure_reason, stalled
 from rvt2cli.keyframes.extract import label_keyframes
 from rvt2cli.record.expert import run_expert
 from rvt2cli.record.scene import capture_cameras, held_objects, make_env, segmentation_ids
@@ -24,6 +26,7 @@ from rvt2cli.tasks import get_task
 
 # a policy's 400 episodes (8 tasks, results v2), recorded on a GPU machine
 V2_JOURNAL = Path(__file__).resolve().parent / "fixtures" / "journals" / "eight_tasks_v2.jsonl"
+RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 
 
 @pytest.fixture(scope="module")
@@ -163,7 +166,25 @@ def test_every_failed_episode_of_a_recorded_journal_has_one_reason():
             if r["failure"] == "planning_failure":
                 assert reason.startswith("unreachable_")  # that journal's executor had no nearest pose
             if r["failure"] == "budget_exhausted" and not insertion:
-                assert reason == "budget_spent"
+                assert reason == ("stalled" if stalled(r["steps"]) else "budget_spent")
+
+
+def test_a_policy_that_repeats_the_pose_it_reached_has_stalled():
+    """rvt2-18's stack_cups seed 10007 (the published evaluation): the second cup set down 7 cm from the
+    base, then 14 keyframes where the arm already was until the keyframe budget ran out: `stalled`. The same
+    record whose last keyframes kept moving 2 cm each, or closed and opened the gripper, spent its budget otherwise."""
+    journal = RESULTS / "stage2_min_points_h200x2" / "eval_all18_min200" / "episodes.jsonl.gz"
+    record = next(r for r in map(json.loads, gzip.decompress(journal.read_bytes()).decode().splitlines()[1:])
+                  if r["task"] == "stack_cups" and r["seed"] == 10007)
+    assert record["failure"] == "budget_exhausted" and len(record["steps"]) == 25
+    assert failure_reason(record, insertion=False) == "stalled"
+    moving = copy.deepcopy(record)
+    for k, step in enumerate(moving["steps"][-STALL_REPEATS - 1:]):
+        step["target"][0] += 0.02 * k
+    assert failure_reason(moving, insertion=False) == "budget_spent"
+    regripped = copy.deepcopy(record)
+    regripped["steps"][-3]["gripper_open"] = not regripped["steps"][-3]["gripper_open"]  # closed, then open again
+    assert failure_reason(regripped, insertion=False) == "budget_spent"
 
 
 def test_replay_bad_input_is_one_line(tmp_path, cli):

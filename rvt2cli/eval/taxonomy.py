@@ -15,17 +15,33 @@ For insertion tasks (`Task.insertion`), where the point is the last centimetre:
 - `insertion_short`: an insertion was attempted and ended `gap_mm` short of success (the record keeps
   the smallest gap any keyframe reached).
 For every task:
-- `budget_spent`: the keyframe or control-step budget ran out.
+- `stalled`: the budget ran out while the source kept predicting where the arm already was: its last
+  `STALL_REPEATS` keyframes each within `STALL_MM` of the one before, the gripper unchanged (the policy
+  saw nothing left to do in a scene that was not done).
+- `budget_spent`: the keyframe or control-step budget ran out otherwise.
 - `source_stopped`: the source had no keyframe left (the oracle at the end of its demo).
 """
 
+import math
+
 REASONS = ("error", "wrong_object", "wrong_target", "unreachable_no_ik", "unreachable_no_path", "grasp_lost", "no_insertion_attempt",
-           "collision_flag_contrary", "insertion_short", "budget_spent", "source_stopped")
+           "collision_flag_contrary", "insertion_short", "stalled", "budget_spent", "source_stopped")
 NEAR_GOAL_MM = 30.0  # a held object this close to success counts as brought to the goal
+STALL_REPEATS = 5    # keyframes at the end, each this close to the one before, make a stall
+STALL_MM = 10.0
 
 
 def _reached(record: dict) -> list[dict]:
     return [s for s in record["steps"] if s["reached"]]
+
+
+def stalled(steps: list[dict]) -> bool:
+    """Whether the last STALL_REPEATS keyframes each lie within STALL_MM of the one before, the gripper unchanged."""
+    if len(steps) <= STALL_REPEATS:
+        return False
+    tail = steps[-STALL_REPEATS - 1:]
+    return all(math.dist(a["target"][:3], b["target"][:3]) * 1000 <= STALL_MM and a["gripper_open"] == b["gripper_open"]
+               for a, b in zip(tail, tail[1:]))
 
 
 def failure_reason(record: dict, insertion: bool) -> str | None:
@@ -51,7 +67,9 @@ def failure_reason(record: dict, insertion: bool) -> str | None:
         if not attempts:
             return "collision_flag_contrary" if near_goal else "no_insertion_attempt"
         return "insertion_short"
-    return "budget_spent" if record["failure"] == "budget_exhausted" else "source_stopped"
+    if record["failure"] != "budget_exhausted":
+        return "source_stopped"
+    return "stalled" if stalled(steps) else "budget_spent"
 
 
 def closest_gap_mm(record: dict) -> float | None:
