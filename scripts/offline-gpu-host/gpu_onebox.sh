@@ -65,6 +65,16 @@ RVT2=(python3 -m rvt2cli)
 # (each command may get a fresh copy of the tree, so every command links them)
 ln -sfn ../tasks rvt2cli/_tasks && ln -sfn ../schemas rvt2cli/_schemas
 clock() { date +%s; }
+progress() {  # how far the work in $W has come: demos recorded, each training's last row, each evaluation's episodes
+  shopt -s nullglob
+  local demos=("$W"/demos/*.mcap "$W"/*/demos/*.mcap)
+  echo "demos: ${#demos[@]}"
+  for f in "$W"/runs/*/train.csv "$W"/*/runs/*/train.csv; do  # step, samples/s, steps skipped
+    echo "$f: step $(tail -1 "$f" | cut -d, -f1), $(tail -1 "$f" | cut -d, -f12 | cut -d. -f1) samples/s, $(tail -1 "$f" | cut -d, -f13) skipped"
+  done
+  for j in "$W"/eval_*/episodes.jsonl "$W"/*/evals/*/episodes.jsonl; do echo "$j: $(( $(wc -l < "$j") - 1 )) episodes"; done
+  shopt -u nullglob
+}
 phase() {  # NAME SECONDS: one line per phase in $W/phases.tsv
   printf '%s\t%.1f\n' "$1" "$2" | tee -a "$W/phases.tsv"
 }
@@ -231,11 +241,12 @@ PY
     cat "$W/$name.log"
     break  # the rest of the command line runs in the background
     ;;
-  wait)  # wait NAME: until the background phases NAME end (at most WAIT_S seconds in this command)
+  wait)  # wait NAME: until the background phases NAME end (at most WAIT_S seconds in this command), then how far they came
     name=$1
     shift
     while [ ! -f "$W/$name.done" ] && [ "$SECONDS" -lt "$WAIT_S" ]; do sleep 5; done
     tail -25 "$W/$name.log"
+    progress
     if [ ! -f "$W/$name.done" ]; then echo "$name still running"; exit 3; fi
     read -r rc _ < "$W/$name.done"
     [ "$rc" = 0 ] || { echo "$name failed ($rc)"; exit 4; }
