@@ -3,7 +3,6 @@ beyond the arm's reach is approached as near as the arm goes, collision flags me
 every demo, and every failed episode gets one reason."""
 
 import copy
-import gzip
 import json
 from pathlib import Path
 
@@ -13,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.eval.executor import CLEARANCE, COLLISION_RESOLUTION, REACH_SLACK_M, Executor
+from rvt2cli.eval.journal import read_journal
 from rvt2cli.eval.robot_geometry import RobotGeometry
 from rvt2cli.eval.rollout import _collision_points
 from rvt2cli.eval.sources import OracleSource
@@ -174,8 +174,7 @@ def test_a_policy_that_repeats_the_pose_it_reached_has_stalled():
     base, then 14 keyframes where the arm already was until the keyframe budget ran out: `stalled`. The same
     record whose last keyframes kept moving 2 cm each, or closed and opened the gripper, spent its budget otherwise."""
     journal = RESULTS / "stage2_min_points_h200x2" / "eval_all18_min200" / "episodes.jsonl.gz"
-    record = next(r for r in map(json.loads, gzip.decompress(journal.read_bytes()).decode().splitlines()[1:])
-                  if r["task"] == "stack_cups" and r["seed"] == 10007)
+    record = next(r for r in read_journal(journal)[1] if r["task"] == "stack_cups" and r["seed"] == 10007)
     assert record["failure"] == "budget_exhausted" and len(record["steps"]) == 25
     assert failure_reason(record, insertion=False) == "stalled"
     moving = copy.deepcopy(record)

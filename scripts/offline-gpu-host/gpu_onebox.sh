@@ -69,8 +69,9 @@ progress() {  # how far the work in $W has come: demos recorded, each training's
   shopt -s nullglob
   local demos=("$W"/demos/*.mcap "$W"/*/demos/*.mcap)
   echo "demos: ${#demos[@]}"
-  for f in "$W"/runs/*/train.csv "$W"/*/runs/*/train.csv; do  # step, samples/s, steps skipped
-    echo "$f: step $(tail -1 "$f" | cut -d, -f1), $(tail -1 "$f" | cut -d, -f12 | cut -d. -f1) samples/s, $(tail -1 "$f" | cut -d, -f13) skipped"
+  for f in "$W"/runs/*/train.csv "$W"/*/runs/*/train.csv; do  # its last row's step, samples/s and steps skipped
+    IFS=, read -r step _ _ _ _ _ _ _ _ _ _ rate skipped _ < <(tail -1 "$f" | tr -d '\r')
+    echo "$f: step $step, ${rate%.*} samples/s, $skipped skipped"
   done
   for j in "$W"/eval_*/episodes.jsonl "$W"/*/evals/*/episodes.jsonl; do echo "$j: $(( $(wc -l < "$j") - 1 )) episodes"; done
   shopt -u nullglob
