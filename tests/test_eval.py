@@ -8,6 +8,7 @@ import pytest
 
 from conftest import assert_one_line_error
 from rvt2cli.eval.runner import EvalOptions, evaluate
+from rvt2cli.record.robot_visuals import DESCRIPTION as ROBOT_VISUALS
 
 pytestmark = pytest.mark.sim
 
@@ -74,7 +75,7 @@ def test_untrained_task_is_warned_in_one_line_and_noted(tiny_checkpoint, tmp_pat
     assert "generalisation test" in (tmp_path / "eval.md").read_text()
 
 
-def test_a_checkpoint_knows_its_demos_renderer_and_eval_warns_under_another(tiny_checkpoint, tmp_path, cli):
+def test_a_checkpoint_knows_its_demos_renderer_and_robot_meshes_and_eval_warns_under_others(tiny_checkpoint, tmp_path, cli):
     import shutil
 
     from rvt2cli.runtime import use_vulkan_driver
@@ -84,6 +85,7 @@ def test_a_checkpoint_knows_its_demos_renderer_and_eval_warns_under_another(tiny
     configs = sorted(Path(run_dir).rglob("config.json"))
     rigs = json.loads(configs[0].read_text())["rigs"]
     assert {rig["renderer"] for rig in rigs.values()} == {here}   # recorded in the demos, kept by training
+    assert {rig["robot_visuals"] for rig in rigs.values()} == {ROBOT_VISUALS}
     other = "nvidia" if here != "nvidia" else "lavapipe"
     elsewhere = tmp_path / "run"
     shutil.copytree(run_dir, elsewhere)
@@ -91,12 +93,14 @@ def test_a_checkpoint_knows_its_demos_renderer_and_eval_warns_under_another(tiny
         data = json.loads(config.read_text())
         for rig in data["rigs"].values():
             rig["renderer"] = other
+            del rig["robot_visuals"]   # as demos recorded before the Panda was lightened
         config.write_text(json.dumps(data))
     r = cli("eval", "--checkpoint", elsewhere, "--episodes", "1", "--keyframe-budget", "1", "--out", tmp_path / "ev",
             "--no-progress")
     assert r.returncode == 0, r.stderr[-2000:]
     warnings = [line for line in r.stderr.splitlines() if "warning" in line.lower()]
-    assert len(warnings) == 1 and f"rendered by {other}" in warnings[0] and f"renders with {here}" in warnings[0], r.stderr
+    assert len(warnings) == 2 and f"rendered by {other}" in warnings[0] and f"renders with {here}" in warnings[0], r.stderr
+    assert "drew the Panda with ManiSkill's full meshes" in warnings[1] and ROBOT_VISUALS in warnings[1], r.stderr
 
 
 def test_a_crashed_worker_keeps_the_finished_episodes_and_resume_runs_the_rest(tmp_path):

@@ -22,6 +22,7 @@ from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
 from rvt2cli.eval.search import InsertionSearch
+from rvt2cli.record.robot_visuals import DESCRIPTION as ROBOT_VISUALS
 from rvt2cli.runtime import use_vulkan_driver, worker_pool
 from rvt2cli.tasks import episode_variation, get_task
 
@@ -206,6 +207,10 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
             warnings.warn(f"the checkpoint's demos were rendered by {' and '.join(trained)}, this evaluation renders with "
                           f"{driver.name}: a policy acts differently under another renderer (docs/RESULTS.md, \"Renderer\"); "
                           f"set RVT2_VULKAN={trained[0]} to evaluate under the demos' renderer")
+        drawn = {rig.get("robot_visuals") or "ManiSkill's full meshes" for rig in ckpt.info.get("rigs", {}).values() if rig.get("renderer")}
+        if drawn - {ROBOT_VISUALS}:
+            warnings.warn(f"the checkpoint's demos drew the Panda with {' and '.join(sorted(drawn))}; this evaluation draws "
+                          f"{ROBOT_VISUALS}: the arm's outline differs by a pixel here and there")
     out_dir = ensure_folder(Path(opts.out) if opts.out else (Path(opts.checkpoint) / "eval" if opts.checkpoint else Path("eval")))
     journal = Journal(out_dir, opts.plan(checkpoint_path), opts.resume)
     todo = [job for job in jobs if (job.source, job.task, job.seed) not in journal.finished]

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from rvt2cli.data import CameraFrame
 from rvt2cli.record.cameras import camera_configs
+from rvt2cli.record.robot_visuals import lighten_robot_visuals
 from rvt2cli.runtime import use_vulkan_driver
 from rvt2cli.tasks import Task
 
@@ -35,9 +36,10 @@ def _freeze_imported_objects() -> None:
 _frozen = False
 
 
-def make_env(task: Task, cameras=None, image_size: int | None = None):
-    """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras. Its steps report
-    no success: ask `env.unwrapped.evaluate()`."""
+def make_env(task: Task, cameras=None, image_size: int | None = None, lighten: bool = True):
+    """Build the task's environment (CPU physics, pd_joint_pos control) with our cameras, the Panda drawn from its
+    lightened meshes (`rvt2cli.record.robot_visuals`; `lighten=False`: ManiSkill's). Its steps report no success:
+    ask `env.unwrapped.evaluate()`."""
     driver = use_vulkan_driver()
     import mani_skill.envs  # noqa: F401 - registers the environments
 
@@ -61,6 +63,11 @@ def make_env(task: Task, cameras=None, image_size: int | None = None):
         @property
         def _default_sensor_configs(self):
             return camera_configs(camera_names, size, self.agent.robot.links_map)
+
+        def _load_agent(self, *args, **kwargs):
+            super()._load_agent(*args, **kwargs)
+            if lighten:
+                lighten_robot_visuals(self.agent.robot)
 
         def _load_scene(self, options):
             super()._load_scene(options)

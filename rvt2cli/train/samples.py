@@ -87,7 +87,8 @@ def episode_samples(path: Path, keyframe_starts_only: bool = False, cameras: tup
     samples = SampleSet(tasks=[ep.meta.task], instructions=[ep.instruction["text"]], episodes=[str(path)],
                         bounds={ep.meta.task: list(ep.meta.scene_bounds)},
                         rigs={ep.meta.task: {"cameras": list(cameras or ep.meta.cameras), "image_size": ep.meta.extra.get("image_size"),
-                                             "renderer": ep.meta.extra.get("renderer")}})
+                                             "renderer": ep.meta.extra.get("renderer"),
+                                             "robot_visuals": ep.meta.extra.get("robot_visuals")}})
     annotation = ep.require_keyframes()
     starts = annotation.starts
     fingers = ep.meta.robot.fingers(ep.robot.joint_positions, ep.robot.joint_names, str(path))
