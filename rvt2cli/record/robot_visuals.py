@@ -1,12 +1,13 @@
 """The Panda's visual meshes, lightened for the cameras.
 
-ManiSkill's Panda draws 136,000 triangles (12,000-22,000 per arm link). lavapipe, the CPU renderer demos and
-evaluations use, spends about three fifths of a 4-camera capture on them (170-250 ms per capture at 128 px
-on a 2-vCPU Xeon, 70 with the meshes below), and the captures are most of an episode's recording. Every
-mesh part over `MIN_PART_TRIANGLES` triangles is drawn from `TRIANGLE_SHARE` of them (at most
-`MAX_PART_TRIANGLES`), decimated by open3d's quadric decimation, which keeps the silhouette: in 128 px views of the arm about 20 of 16,384 depth pixels
-per camera move by more than 1 mm, all on its outline (tests/test_record.py). Smaller parts, the fingers
-among them, keep every triangle: they fill the wrist camera's view.
+ManiSkill's Panda draws 136,000 triangles (12,000-22,000 per arm link; `panda_wristcam` 561,000). lavapipe,
+the CPU renderer demos and evaluations use, spends most of a 4-camera capture on them (turn_tap: 222 ms per
+capture at 128 px on a 2-vCPU Xeon, 79 with the meshes below), and captures are most of an episode's
+recording. Every mesh part over `MIN_PART_TRIANGLES` triangles is drawn from `TRIANGLE_SHARE` of them (at
+most `MAX_PART_TRIANGLES`), decimated by open3d's quadric decimation, which keeps the silhouette: in 128 px
+views of the arm 0.07-0.15% of a fixed camera's depth pixels move by more than 1 mm, all on its outline
+(`benchmarks/robot_visuals_bench.py`, tests/test_record.py). Smaller parts, the fingers among them, keep
+every triangle: they fill the wrist camera's view.
 
 The decimated parts ship with rvt2 (`panda_visuals.npz`, made by `python -m rvt2cli.record.robot_visuals`
 from ManiSkill's meshes): every machine draws the same arm, and no machine needs open3d to record. A part
