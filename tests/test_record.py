@@ -369,9 +369,8 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
     the arm's outline."""
     import warnings
 
-    import sapien
-
     import rvt2cli.record.scene as scene
+    from rvt2cli.record.robot_visuals import _parts
 
     task = get_task("turn_tap")   # an rvt2-18 scene: the arm is in view of all four cameras
 
@@ -379,9 +378,7 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
         env.reset(seed=0)
         segmentation = {}
         frames = scene.capture_cameras(env, segmentation)
-        triangles = sum(len(part.triangles) for link in env.unwrapped.agent.robot.get_links()
-                        for body in [link._objs[0].entity.find_component_by_type(sapien.render.RenderBodyComponent)] if body
-                        for shape in body.render_shapes for part in shape.parts)
+        triangles = sum(len(part.triangles) for *_, part in _parts(env.unwrapped.agent.robot))
         env.close()
         return frames, segmentation, triangles
 

@@ -83,12 +83,12 @@ def lighten_robot_visuals(robot) -> None:
     bodies: dict[int, tuple] = {}
     for body, shape, index, part in _parts(robot):
         vertices, triangles = np.asarray(part.vertices, np.float32), np.asarray(part.triangles, np.uint32)
-        key = _part_key(shape.filename, index, vertices, triangles)
-        if len(triangles) > MIN_PART_TRIANGLES and f"{key}/vertices" in shipped:
+        key = _part_key(shape.filename, index, vertices, triangles) if len(triangles) > MIN_PART_TRIANGLES else None
+        if key is not None and f"{key}/vertices" in shipped:
             v, t, n = (shipped[f"{key}/{name}"] for name in ("vertices", "triangles", "normals"))
             uv = np.zeros((len(v), 2), np.float32)   # untextured: the colour is the material's
         else:
-            if len(triangles) > MIN_PART_TRIANGLES:
+            if key is not None:
                 warnings.warn(f"{key}: a Panda mesh part rvt2 has no lighter version of (another ManiSkill than "
                               f"{MESHES.name} was made from?); drawn whole", stacklevel=2)
             v, t = vertices, triangles
