@@ -97,7 +97,18 @@ def collect(policies: dict[str, list[dict]], oracle: dict[str, dict], expert: di
             papers: dict | None = None) -> dict:
     papers = papers or {}
     rows = []
-    for task in sorted(oracle):
+    # the first policy's tasks (an evaluation of some tasks only gets rows for those); every column needs them
+    tasks = sorted(next(iter(policies.values()))[0]["tasks"])
+    for label, reports in policies.items():
+        for report in reports:
+            lacking = [t for t in tasks if t not in report["tasks"]]
+            if lacking:
+                raise SystemExit(f"results_table: error: --policy {label!r} has no episodes of {lacking[0]}, which the "
+                                 "first --policy has; give evaluations of the same tasks")
+    lacking = [t for t in tasks if t not in oracle]
+    if lacking:
+        raise SystemExit(f"results_table: error: the oracle has no episodes of {lacking[0]}; give an oracle of every task evaluated")
+    for task in tasks:
         entry = {"task": task, "policies": {}, "oracle": oracle[task], "expert": expert[task],
                  "papers": {label: figures.get(task) for label, figures in papers.items()}}
         for label, reports in policies.items():

@@ -84,3 +84,18 @@ def test_a_table_without_oracle_and_expert_columns_is_refused_in_one_line(monkey
         results_table.main()
     assert exit_.value.code == 2
     assert "give the oracle and expert columns" in capsys.readouterr().err
+
+
+def test_an_evaluation_of_some_tasks_has_rows_for_those_alone():
+    """The three-task language pilot (benchmarks/results/rvt2_18_language_h200): rows for its tasks, the
+    oracle's rows for them; a column that lacks one of the first column's tasks is one line."""
+    evals = REPOSITORY / "benchmarks" / "results" / "rvt2_18_language_h200" / "rvt2_18_language" / "evals"
+    [trained] = results_table.load_models(f"{evals / 'seed0'}+{evals / 'seed0_second_range'}")
+    oracle, expert = results_table.from_oracle_bench(str(ORACLE / "oracle_bench.json"))
+    results = results_table.collect({"trained": [trained]}, oracle, expert, {})
+    assert [row["task"] for row in results["rows"]] == ["open_drawer", "push_buttons", "stack_blocks"]
+    episodes = {row["task"]: row["policies"]["trained"]["episodes"] for row in results["rows"]}
+    assert episodes == {"open_drawer": 100, "push_buttons": 100, "stack_blocks": 50}  # the second range: two tasks
+    [second] = results_table.load_models(str(evals / "seed0_second_range"))
+    with pytest.raises(SystemExit, match="'second range' has no episodes of stack_blocks"):
+        results_table.collect({"trained": [trained], "second range": [second]}, oracle, expert, {})
