@@ -6,7 +6,9 @@
 
 EVAL_DIR is an `rvt2 eval --out` folder; several joined with + are one evaluation over all their seeds
 (their episode records are merged and summarised by the same code `rvt2 eval` uses). EVAL_DIR@FIRST-LAST
-takes that evaluation's seeds FIRST to LAST only (one range of a 100-seed evaluation). Several models
+takes that evaluation's seeds FIRST to LAST only (one range of a 100-seed evaluation); EVAL_DIR#first takes
+the episodes instructed with their variation's first trained phrasing only (the phrasing the paper trains and
+evaluates with), #others the rest. Several models
 (training seeds) separated by commas are one row entry: their episodes pooled (rate and Wilson interval
 over all of them) and the spread between the models' rates beside it. oracle.json is
 `python -m benchmarks.oracle_bench --json ...` (oracle and expert on the same seeds); the older pair
@@ -30,9 +32,10 @@ def load_policy(dirs: str) -> dict:
     """One report from one or more eval folders (their episodes merged)."""
     records, seeds = [], []
     for item in dirs.split("+"):
+        item, phrasing = phrasing_filter(item)
         folder, first, last = seed_range(item)
         plan, episodes = read_journal(journal_of(Path(folder)))
-        records += [e for e in episodes if e["source"] == "policy" and first <= e["seed"] <= last]
+        records += [e for e in episodes if e["source"] == "policy" and first <= e["seed"] <= last and phrasing(e)]
         seeds.append(max(plan["seed"], first))
     per_task = len({r["seed"] for r in records if r["task"] == records[0]["task"]})
     return build_report(records, {"seed": min(seeds), "episodes_per_task": per_task})
@@ -47,6 +50,22 @@ def seed_range(item: str) -> tuple[str, float, float]:
     if not (first.isdigit() and last.isdigit()) or int(first) > int(last):
         raise SystemExit(f"results_table: {item!r}: give seeds as EVAL_DIR@FIRST-LAST, e.g. evals/x@10000-10049")
     return folder, int(first), int(last)
+
+
+def phrasing_filter(item: str):
+    """EVAL_DIR[@...]#first or #others -> (the rest, a test of an episode): only the episodes instructed with
+    their variation's first trained phrasing (the paper's, RLBench's descriptions[0]), or only the others."""
+    rest, hash_, which = item.rpartition("#")
+    if not hash_:
+        return item, lambda episode: True
+    if which not in ("first", "others"):
+        raise SystemExit(f"results_table: {item!r}: the phrasing after # is first or others, e.g. evals/x#first")
+    from rvt2cli.tasks import get_task
+
+    def is_first(episode: dict) -> bool:
+        return episode["instruction"] == get_task(episode["task"]).first_phrasing(episode.get("variation", 0))
+
+    return rest, is_first if which == "first" else (lambda episode: not is_first(episode))
 
 
 def journal_of(folder: Path) -> Path:

@@ -62,6 +62,11 @@ class Task:
         index = random.Random(seed).randrange(len(templates))
         return templates[index].format(**self.variation_values(variation)), index
 
+    def first_phrasing(self, variation: int = 0) -> str:
+        """The variation's first trained phrasing: RLBench's first description (`init_episode`'s descriptions[0]),
+        the one instruction PerAct, RVT and RVT-2 train and evaluate with."""
+        return self.instructions[0].format(**self.variation_values(variation))
+
     def variation_of(self, text: str) -> int | None:
         """The variation one of whose trained phrasings (`instructions` filled in) `text` is, or None (a held-out
         paraphrase, or an instruction written elsewhere)."""

@@ -11,7 +11,7 @@ import pytest
 from benchmarks import results_table
 from benchmarks.experiment import REPOSITORY
 from rvt2cli.eval.report import build_report
-from rvt2cli.tasks import tasks_of_set
+from rvt2cli.tasks import get_task, tasks_of_set
 
 PAPER = REPOSITORY / "benchmarks" / "paper_rlbench18.toml"
 ORACLE = REPOSITORY / "benchmarks" / "results" / "rlbench18_oracle_50"
@@ -99,3 +99,20 @@ def test_an_evaluation_of_some_tasks_has_rows_for_those_alone():
     [second] = results_table.load_models(str(evals / "seed0_second_range"))
     with pytest.raises(SystemExit, match="'second range' has no episodes of stack_blocks"):
         results_table.collect({"trained": [trained], "second range": [second]}, oracle, expert, {})
+
+
+def test_the_first_phrasing_and_the_others_split_an_evaluation():
+    """EVAL_DIR#first: the episodes instructed with their variation's first trained phrasing (the paper's);
+    #others the rest. On the published rvt2-18 evaluation the two add up to it, task by task."""
+    folder = REPOSITORY / "benchmarks" / "results" / "stage2_min_points_h200x2" / "eval_all18_min200"
+    [first], [others], [whole] = (results_table.load_models(f"{folder}{suffix}") for suffix in ("#first", "#others", ""))
+    records = [json.loads(line) for line in gzip.open(folder / "episodes.jsonl.gz", "rt").read().splitlines()[1:]]
+    for task in tasks_of_set("rlbench18"):
+        a, b, c = (r["tasks"][task]["policy"] for r in (first, others, whole))
+        assert a["episodes"] + b["episodes"] == c["episodes"] == 100
+        assert a["successes"] + b["successes"] == c["successes"]
+        template = get_task(task).instructions[0]
+        assert a["episodes"] == sum(r["task"] == task and r["instruction"] == template.format(
+            **get_task(task).variation_values(r["variation"])) for r in records)
+    with pytest.raises(SystemExit, match="first or others"):
+        results_table.load_models(f"{folder}#second")

@@ -227,6 +227,21 @@ def test_an_instructions_phrasings_are_its_variations_trained_ones():
 
 
 
+def test_an_episodes_words_are_drawn_by_seed_or_the_first_phrasing_as_the_paper_evaluates():
+    """RLBench's tasks return their variation's descriptions and PerAct, RVT and RVT-2 train and evaluate with the
+    first (descriptions[0]); rvt2 draws one of the trained phrasings by seed unless --first-phrasing."""
+    cups = get_task("stack_cups")
+    assert cups.first_phrasing(0) == "stack the other cups on top of the red cup"   # RLBench's first, variation 0
+    drawn, first = EvalOptions(checkpoint=None), EvalOptions(checkpoint=None, first_phrasing=True)
+    words = {seed: drawn.instruction_for(cups, seed, 3) for seed in range(10_000, 10_100)}
+    assert all(text == cups.instruction(seed, 3)[0] for seed, text in words.items())
+    assert set(words.values()) == set(cups.phrasings(cups.first_phrasing(3)))      # every trained phrasing turns up
+    assert {first.instruction_for(cups, seed, 3) for seed in range(10_000, 10_100)} == {cups.first_phrasing(3)}
+    assert first.plan(None)["first_phrasing"] is True and "first_phrasing" not in drawn.plan(None)  # older journals resume
+    assert EvalOptions(checkpoint=None, instruction="stack them").instruction_for(cups, 10_000, 3) == "stack them"
+    assert EvalOptions(checkpoint=None, paraphrases=True).instruction_for(cups, 10_000, 3) in cups.all_paraphrases()
+
+
 def test_an_evaluation_plans_the_tasks_in_turns_with_their_variations_drawn_evenly():
     """A stopped evaluation has as many episodes of every task: the jobs go task after task, seed by seed."""
     tasks = ("close_jar", "push_buttons", "insert_peg")   # 20, 50 and 1 variations
@@ -315,4 +330,6 @@ def test_record_cli_records_one_variation(cli, tmp_path):
     assert_one_line_error(cli("record", "--task", TASK, "--variation", "1", "--hold-out-variations", "--out", tmp_path),
                           "not both")
     assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--paraphrases", "--instruction", "x", "--out", tmp_path),
-                          "not both")
+                          "one of --paraphrases, --first-phrasing and --instruction", "--paraphrases and --instruction were given")
+    assert_one_line_error(cli("eval", "--oracle", "--tasks", TASK, "--first-phrasing", "--paraphrases", "--out", tmp_path),
+                          "--paraphrases and --first-phrasing were given")

@@ -23,6 +23,9 @@ def register(subparsers) -> None:
                         "held_out_variations; tasks without them are left out), seen (all but those) or one index K")
     p.add_argument("--paraphrases", action="store_true",
                    help="instruct with each task's held-out paraphrases (tasks/*.toml) instead of its training instructions")
+    p.add_argument("--first-phrasing", action="store_true",
+                   help="instruct every episode with its variation's first trained phrasing, RLBench's first description, "
+                        "as PerAct, RVT and RVT-2 evaluate (default: one of the trained phrasings, drawn by the seed)")
     p.add_argument("--episodes", type=COUNT, default=E.episodes, help=f"per task (default {E.episodes})")
     p.add_argument("--seed", type=SEED, default=E.seed, help=f"first seed (default {E.seed}; demos use 0 upwards)")
     p.add_argument("--workers", type=integer(1, 256), default=E.workers, help="parallel simulator processes, one core each")
@@ -70,10 +73,12 @@ def run(args) -> int:
     warnings.simplefilter("default")
     if args.tasks and args.task_set:
         raise UserError("eval takes --tasks or --task-set, not both")
-    if args.paraphrases and args.instruction:
-        raise UserError("eval takes --paraphrases or --instruction, not both")
+    chosen = [flag for flag, given in (("--paraphrases", args.paraphrases), ("--first-phrasing", args.first_phrasing),
+                                       ("--instruction", args.instruction)) if given]
+    if len(chosen) > 1:
+        raise UserError(f"eval takes one of --paraphrases, --first-phrasing and --instruction; {' and '.join(chosen)} were given")
     tasks = tuple(tasks_of_set(args.task_set)) if args.task_set else args.tasks or ()
-    opts = EvalOptions(checkpoint=args.checkpoint, tasks=tasks, paraphrases=args.paraphrases, variations=args.variations, episodes=args.episodes, seed=args.seed,
+    opts = EvalOptions(checkpoint=args.checkpoint, tasks=tasks, paraphrases=args.paraphrases, first_phrasing=args.first_phrasing, variations=args.variations, episodes=args.episodes, seed=args.seed,
                        workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,

@@ -22,6 +22,7 @@ class EvalOptions:
     demos: tuple[str, ...] = ()       # oracle from these recorded demos (their seeds) instead of the expert
     instruction: str | None = None    # another phrasing of the instruction
     paraphrases: bool = False         # each task's held-out paraphrases instead of its training instructions
+    first_phrasing: bool = False      # each variation's first trained phrasing (the paper's evaluation) instead of one drawn by seed
     variations: str = "all"           # which variations the episodes spread over: all, seen, held-out or one index
     video: bool = False
     save_rollouts: bool = False
@@ -45,8 +46,19 @@ class EvalOptions:
         # options added later join the plan only when set, so that an older rvt2's journal still resumes
         if self.paraphrases:
             plan["paraphrases"] = True
+        if self.first_phrasing:
+            plan["first_phrasing"] = True
         if self.variations != "all":
             plan["variations"] = self.variations
         if self.stage2_min_points is not None:
             plan["stage2_min_points"] = self.stage2_min_points
         return plan
+
+    def instruction_for(self, task, seed: int, variation: int) -> str:
+        """The words an episode is given: --instruction's, or its variation's first trained phrasing
+        (--first-phrasing), or one of its trained phrasings (or held-out paraphrases) drawn by its seed."""
+        if self.instruction:
+            return self.instruction
+        if self.first_phrasing:
+            return task.first_phrasing(variation)
+        return task.instruction(seed, variation, self.paraphrases)[0]

@@ -195,6 +195,9 @@ def markdown(report: dict) -> str:
              f"{report['keyframe_budget']}, control steps up to {report.get('step_budget_scale', 1):g} x each task's max_steps."]
     if report.get("paraphrases"):
         lines += ["", "Instructions: each task's held-out paraphrases (never seen in training)."]
+    if report.get("first_phrasing"):
+        lines += ["", "Instructions: each variation's first trained phrasing (RLBench's first description, "
+                      "as PerAct, RVT and RVT-2 evaluate)."]
     if report.get("variations", "all") != "all":
         lines += ["", f"Variations: {report['variations']} only."]
     if report.get("untrained_tasks"):

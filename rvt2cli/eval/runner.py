@@ -75,7 +75,7 @@ class _Worker:
 
         task = get_task(job.task)
         env = self.env(task)
-        instruction = self.opts.instruction or task.instruction(job.seed, job.variation, self.opts.paraphrases)[0]
+        instruction = self.opts.instruction_for(task, job.seed, job.variation)
         if job.source == "policy":
             source = self.policy
         else:
@@ -229,7 +229,7 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     def report() -> dict:
         meta = {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
                 "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
-                "paraphrases": opts.paraphrases, "variations": opts.variations,
+                "paraphrases": opts.paraphrases, "first_phrasing": opts.first_phrasing, "variations": opts.variations,
                 "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
                 "search_grids": search_grids(sorted({job.task for job in jobs})) if opts.insertion_search else {},
                 "untrained_tasks": untrained, "seconds": time.perf_counter() - start}
