@@ -75,7 +75,7 @@ def test_untrained_task_is_warned_in_one_line_and_noted(tiny_checkpoint, tmp_pat
     assert "generalisation test" in (tmp_path / "eval.md").read_text()
 
 
-def test_a_checkpoint_knows_its_demos_renderer_and_robot_meshes_and_eval_warns_under_others(tiny_checkpoint, tmp_path, cli):
+def test_a_checkpoint_knows_its_demos_renderer_robot_meshes_and_phrasing_and_eval_warns_under_others(tiny_checkpoint, tmp_path, cli):
     import shutil
 
     from rvt2cli.runtime import use_vulkan_driver
@@ -94,13 +94,15 @@ def test_a_checkpoint_knows_its_demos_renderer_and_robot_meshes_and_eval_warns_u
         for rig in data["rigs"].values():
             rig["renderer"] = other
             del rig["robot_visuals"]   # as demos recorded before the Panda was lightened
+        data["options"]["phrasings"] = "first"   # as `rvt2 train --phrasings first` keeps it
         config.write_text(json.dumps(data))
     r = cli("eval", "--checkpoint", elsewhere, "--episodes", "1", "--keyframe-budget", "1", "--out", tmp_path / "ev",
             "--no-progress")
     assert r.returncode == 0, r.stderr[-2000:]
     warnings = [line for line in r.stderr.splitlines() if "warning" in line.lower()]
-    assert len(warnings) == 2 and f"rendered by {other}" in warnings[0] and f"renders with {here}" in warnings[0], r.stderr
-    assert "drew the Panda with ManiSkill's full meshes" in warnings[1] and ROBOT_VISUALS in warnings[1], r.stderr
+    assert len(warnings) == 3 and f"rendered by {other}" in warnings[0] and f"renders with {here}" in warnings[0], r.stderr
+    assert "first phrasing alone" in warnings[1] and "give --first-phrasing" in warnings[1], r.stderr
+    assert "drew the Panda with ManiSkill's full meshes" in warnings[2] and ROBOT_VISUALS in warnings[2], r.stderr
 
 
 def test_a_crashed_worker_keeps_the_finished_episodes_and_resume_runs_the_rest(tmp_path):

@@ -630,3 +630,20 @@ def test_phrasings_all_draws_each_phrasing_of_the_demos_variation(tiny_dataset, 
     ckpt = load_checkpoint(run)
     assert set(phrasings) <= set(ckpt.instruction_embeddings)          # every phrasing trained on is kept with it
     assert json.loads((run / "run.json").read_text())["options"]["phrasings"] == "all"
+
+
+def test_phrasings_first_trains_every_sample_on_its_variations_first_phrasing(tiny_dataset, tmp_path):
+    """--phrasings first, the paper's training: each demo's words become its variation's first trained phrasing
+    (RLBench's descriptions[0]), whichever phrasing its seed drew; the checkpoint knows no other."""
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.tasks import get_task
+    from rvt2cli.train.samples import load_samples, trained_instructions
+
+    samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
+    first = get_task("stack_cube").first_phrasing(0)
+    assert trained_instructions(samples, "demo") == samples.instructions
+    assert trained_instructions(samples, "first") == [first] * len(samples.instructions)
+    run = tmp_path / "first"
+    train(TrainOptions(data=[str(tiny_dataset)], out=str(run), steps=2, save_every=2, phrasings="first", **TINY_TRAIN),
+          say=lambda *_: None)
+    assert set(load_checkpoint(run).instruction_embeddings) == {first}

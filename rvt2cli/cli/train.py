@@ -83,11 +83,12 @@ def register(subparsers) -> None:
     p.add_argument("--task-weights", type=weights, metavar="TASK=W,...",
                    help="draw tasks in proportion to these weights (tasks left out: 1) instead of uniformly, e.g. "
                         "insert_peg=3,plug_charger=3 to give the insertions more of the training (default: every task alike, as the paper)")
-    p.add_argument("--phrasings", choices=["demo", "all"],
+    p.add_argument("--phrasings", choices=["demo", "all", "first"],
                    help="demo: each sample keeps its demo's instruction, one of its variation's trained phrasings drawn "
-                        "by the demo's seed (default; the paper trains and evaluates on the first alone, RLBench's "
-                        "descriptions[0]); all: each draw takes one of the trained phrasings (tasks/*.toml's "
-                        "instructions) of its variation, so every variation is seen in every phrasing")
+                        "by the demo's seed (default); all: each draw takes one of the trained phrasings (tasks/*.toml's "
+                        "instructions) of its variation, so every variation is seen in every phrasing; first: each sample "
+                        "reads its variation's first phrasing, RLBench's descriptions[0], as the paper trains (evaluate "
+                        "with rvt2 eval --first-phrasing)")
     p.add_argument("--cameras", type=names, help="fuse only these cameras' points, e.g. front (the single-camera setting)")
     p.add_argument("--no-amp", dest="amp", action="store_false", help="no bf16 autocast on CUDA")
     p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU: ~1.5x faster after a minute of compiling)")

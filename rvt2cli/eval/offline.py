@@ -23,7 +23,7 @@ from rvt2cli.model.language import InstructionCache
 from rvt2cli.train.batches import pack
 from rvt2cli.train.checkpoint import load_policy
 from rvt2cli.train.metrics import precision_report, score_predictions, task_rows
-from rvt2cli.train.samples import load_samples
+from rvt2cli.train.samples import load_samples, trained_instructions
 
 DEFAULT_MAX_POINTS = 50_000
 
@@ -71,7 +71,9 @@ def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, devi
     out = ensure_folder(out) if out is not None else None  # a bad --out is one line, before minutes of work
     loaded = load_demos_for(checkpoint, demos, device=device, progress=progress, stage2_min_points=stage2_min_points)
     policy, ckpt, paths, samples = loaded.policy, loaded.checkpoint, loaded.paths, loaded.samples
-    packed = loaded.pack(InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(samples.instructions), device)
+    # the words the model was trained to read for each demo's instruction (its first phrasing under --phrasings first)
+    texts = trained_instructions(samples, (ckpt.info.get("options") or {}).get("phrasings", "demo"))
+    packed = loaded.pack(InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(texts), device)
     from tqdm import tqdm
 
     with tqdm(total=len(packed), desc="offline", unit="obs", disable=not progress, dynamic_ncols=True) as bar:

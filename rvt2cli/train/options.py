@@ -42,7 +42,8 @@ class TrainOptions:
     task_weights: dict[str, float] | None = None  # task -> weight: its share of the draws is weight / sum (others 1); None: uniform
     task_set: str | None = None      # train on the episodes of this named set's tasks only (e.g. rlbench18)
     phrasings: str = "demo"          # demo: a sample's instruction is its demo's; all: each draw takes one of its
-                                     # variation's trained phrasings (tasks/*.toml's instructions)
+                                     # variation's trained phrasings (tasks/*.toml's instructions); first: its
+                                     # variation's first phrasing (samples.trained_instructions)
     cameras: tuple[str, ...] | None = None  # train on these cameras' points only (e.g. front: the single-camera setting)
     amp: bool = True
     compile: bool = False            # torch.compile the network (H100 training step: 381 -> 560 samples/s)

@@ -117,6 +117,24 @@ def episode_samples(path: Path, keyframe_starts_only: bool = False, cameras: tup
     return samples
 
 
+def trained_instructions(samples: SampleSet, phrasings: str = "demo") -> list[str]:
+    """The words a model trained with `--phrasings` reads for each of the sample set's instructions: the demo's
+    own ("demo", and "all", whose other phrasings `phrasing_table` adds per draw), or its variation's first
+    trained phrasing ("first": RLBench's descriptions[0], the one PerAct, RVT and RVT-2 train on; an
+    instruction of no known task or variation keeps its own words). Training and offline scoring both ask here."""
+    if phrasings != "first":
+        return list(samples.instructions)
+    from rvt2cli.tasks import all_tasks
+
+    known = all_tasks()
+    task_of = dict(zip(samples.instruction_index, samples.task_index))
+    out = []
+    for i, text in enumerate(samples.instructions):
+        task = known.get(samples.tasks[task_of[i]]) if i in task_of else None
+        out.append(task.phrasings(text)[0] if task is not None else text)
+    return out
+
+
 def phrasing_table(samples: SampleSet) -> tuple[list[str], np.ndarray, np.ndarray]:
     """`rvt2 train --phrasings all`: each instruction of the sample set beside the other trained phrasings of
     its variation (`Task.phrasings`; a task not in tasks/ keeps its own). Returns the instruction table

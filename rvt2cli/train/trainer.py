@@ -39,7 +39,7 @@ from rvt2cli.train.metrics import headline, precision_report, score_predictions,
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
 from rvt2cli.train.options import TrainOptions, conflicts
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
-from rvt2cli.train.samples import SampleSet, load_samples, phrasing_table, select_samples
+from rvt2cli.train.samples import SampleSet, load_samples, phrasing_table, select_samples, trained_instructions
 from rvt2cli.train.step import StepResult, TrainStep
 from rvt2cli.tasks import aim_offsets, tasks_of_set
 
@@ -283,7 +283,11 @@ def read_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         say(f"phrasings: {len(texts)} instructions for the {len(samples.instructions)} the demos use "
             f"(--phrasings all: up to {table.shape[1]} per variation)")
     else:
-        lang = cache(samples.instructions)
+        texts = trained_instructions(samples, opts.phrasings)
+        lang = cache(texts)
+        if opts.phrasings == "first":
+            say(f"phrasings: {len(set(texts))} instructions, each variation's first, for the {len(samples.instructions)} "
+                "the demos use (--phrasings first)")
     aims = None
     if opts.aim_held:  # a resumed run keeps the offsets it began with, whatever tasks/*.toml says now
         aims = resume.aim_offsets if resume is not None and resume.aim_offsets is not None else aim_offsets(samples.tasks)
