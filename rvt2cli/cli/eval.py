@@ -73,8 +73,7 @@ def run(args) -> int:
     warnings.simplefilter("default")
     if args.tasks and args.task_set:
         raise UserError("eval takes --tasks or --task-set, not both")
-    chosen = [flag for flag, given in (("--paraphrases", args.paraphrases), ("--first-phrasing", args.first_phrasing),
-                                       ("--instruction", args.instruction)) if given]
+    chosen = _word_options(args)
     if len(chosen) > 1:
         raise UserError(f"eval takes one of --paraphrases, --first-phrasing and --instruction; {' and '.join(chosen)} were given")
     tasks = tuple(tasks_of_set(args.task_set)) if args.task_set else args.tasks or ()
@@ -118,6 +117,12 @@ def run(args) -> int:
     return 0
 
 
+def _word_options(args) -> list[str]:
+    """The options given that choose a closed-loop episode's words (EvalOptions.instruction_for)."""
+    return [flag for flag, given in (("--paraphrases", args.paraphrases), ("--first-phrasing", args.first_phrasing),
+                                     ("--instruction", args.instruction)) if given]
+
+
 def run_offline(args) -> int:
     from pathlib import Path
 
@@ -126,6 +131,10 @@ def run_offline(args) -> int:
 
     if not args.checkpoint:
         raise UserError("eval --offline needs --checkpoint")
+    words = _word_options(args)
+    if words:
+        raise UserError(f"eval --offline scores each demo under the words its checkpoint was trained to read; {words[0]} "
+                        "chooses a closed-loop episode's words: leave it out")
     out = args.out or str(Path(args.checkpoint) / "offline")
     report = evaluate_offline(args.checkpoint, args.offline, out, device=args.device, batch_size=args.batch_size,
                               progress=not args.no_progress, stage2_min_points=args.stage2_min_points)
