@@ -61,8 +61,7 @@ def load_demos_for(checkpoint: str, demos, device: str = "cpu", progress: bool =
         raise UserError(f"{ckpt.path}: was not trained on task(s) {', '.join(unknown)} of the demos "
                         f"(it knows {', '.join(ckpt.tasks)}); give demos of those tasks")
     samples = load_samples(paths, include_failures=True, progress=progress, cameras=_cameras(ckpt))
-    options = ckpt.info.get("options") or {}
-    return DemosForPolicy(policy, ckpt, paths, samples, int(options.get("max_points") or DEFAULT_MAX_POINTS))
+    return DemosForPolicy(policy, ckpt, paths, samples, int(ckpt.training_options.get("max_points") or DEFAULT_MAX_POINTS))
 
 
 def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, device: str = "cpu", batch_size: int = 8,
@@ -72,7 +71,7 @@ def evaluate_offline(checkpoint: str, demos, out: str | Path | None = None, devi
     loaded = load_demos_for(checkpoint, demos, device=device, progress=progress, stage2_min_points=stage2_min_points)
     policy, ckpt, paths, samples = loaded.policy, loaded.checkpoint, loaded.paths, loaded.samples
     # the words the model was trained to read for each demo's instruction (its first phrasing under --phrasings first)
-    texts = trained_instructions(samples, (ckpt.info.get("options") or {}).get("phrasings", "demo"))
+    texts = trained_instructions(samples, ckpt.training_options.get("phrasings", "demo"))
     packed = loaded.pack(InstructionCache(policy.cfg.lang_tokens, ckpt.instruction_embeddings)(texts), device)
     from tqdm import tqdm
 

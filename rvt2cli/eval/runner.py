@@ -207,7 +207,7 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
             warnings.warn(f"the checkpoint's demos were rendered by {' and '.join(trained)}, this evaluation renders with "
                           f"{driver.name}: a policy acts differently under another renderer (docs/RESULTS.md, \"Renderer\"); "
                           f"set RVT2_VULKAN={trained[0]} to evaluate under the demos' renderer")
-        if (ckpt.info.get("options") or {}).get("phrasings") == "first" and not (opts.first_phrasing or opts.instruction):
+        if ckpt.training_options.get("phrasings") == "first" and not (opts.first_phrasing or opts.instruction):
             warnings.warn("the checkpoint was trained on each variation's first phrasing alone (--phrasings first); "
                           "this evaluation instructs with other phrasings too: give --first-phrasing to evaluate as it was trained")
         drawn = {rig.get("robot_visuals") or "ManiSkill's full meshes" for rig in ckpt.info.get("rigs", {}).values() if rig.get("renderer")}

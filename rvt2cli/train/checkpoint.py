@@ -44,6 +44,11 @@ class Checkpoint:
         return list(self.info.get("tasks", []))
 
     @property
+    def training_options(self) -> dict:
+        """The run's options as `rvt2 train` kept them (TrainOptions.to_json); {} for a checkpoint without them."""
+        return self.info.get("options") or {}
+
+    @property
     def aim_offsets(self) -> dict[str, list[float]] | None:
         """Task -> aim offset (m, TCP frame) of a policy trained with `--aim-held`; None: it aims the TCP."""
         return self.info.get("aim_offsets")

@@ -117,13 +117,9 @@ def episode_samples(path: Path, keyframe_starts_only: bool = False, cameras: tup
     return samples
 
 
-def trained_instructions(samples: SampleSet, phrasings: str = "demo") -> list[str]:
-    """The words a model trained with `--phrasings` reads for each of the sample set's instructions: the demo's
-    own ("demo", and "all", whose other phrasings `phrasing_table` adds per draw), or its variation's first
-    trained phrasing ("first": RLBench's descriptions[0], the one PerAct, RVT and RVT-2 train on; an
-    instruction of no known task or variation keeps its own words). Training and offline scoring both ask here."""
-    if phrasings != "first":
-        return list(samples.instructions)
+def variation_phrasings(samples: SampleSet) -> list[list[str]]:
+    """Each of the sample set's instructions as the trained phrasings of its variation, the first template's
+    first (`Task.phrasings`); an instruction of no known task or variation as its own words alone."""
     from rvt2cli.tasks import all_tasks
 
     known = all_tasks()
@@ -131,8 +127,18 @@ def trained_instructions(samples: SampleSet, phrasings: str = "demo") -> list[st
     out = []
     for i, text in enumerate(samples.instructions):
         task = known.get(samples.tasks[task_of[i]]) if i in task_of else None
-        out.append(task.phrasings(text)[0] if task is not None else text)
+        out.append(task.phrasings(text) if task is not None else [text])
     return out
+
+
+def trained_instructions(samples: SampleSet, phrasings: str = "demo") -> list[str]:
+    """The words a model trained with `--phrasings` reads for each of the sample set's instructions: the demo's
+    own ("demo", and "all", whose other phrasings `phrasing_table` adds per draw), or its variation's first
+    trained phrasing ("first": RLBench's descriptions[0], the one PerAct, RVT and RVT-2 train on). Training
+    and offline scoring both ask here."""
+    if phrasings != "first":
+        return list(samples.instructions)
+    return [own[0] for own in variation_phrasings(samples)]
 
 
 def phrasing_table(samples: SampleSet) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -140,17 +146,12 @@ def phrasing_table(samples: SampleSet) -> tuple[list[str], np.ndarray, np.ndarra
     its variation (`Task.phrasings`; a task not in tasks/ keeps its own). Returns the instruction table
     extended by the phrasings no demo used (the set's own entries keep their indices), each instruction's
     phrasings as indices into that table [U, K] (-1 past its count), and the counts [U]."""
-    from rvt2cli.tasks import all_tasks
-
-    known = all_tasks()
-    task_of = dict(zip(samples.instruction_index, samples.task_index))
     texts = list(samples.instructions)
     index = {text: i for i, text in enumerate(texts)}
     rows = []
-    for i, text in enumerate(samples.instructions):
-        task = known.get(samples.tasks[task_of[i]]) if i in task_of else None
+    for own in variation_phrasings(samples):
         row = []
-        for phrasing in task.phrasings(text) if task is not None else [text]:
+        for phrasing in own:
             if phrasing not in index:
                 index[phrasing] = len(texts)
                 texts.append(phrasing)

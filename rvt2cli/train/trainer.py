@@ -112,7 +112,7 @@ def check_run_folder(run_dir: Path, resume: bool) -> None:
 def stored_options(run_dir: Path) -> TrainOptions | None:
     """The options a run was started with (from its last checkpoint), or None for a run without them."""
     check_run_folder(run_dir, resume=True)
-    options = load_checkpoint(run_dir).info.get("options")
+    options = load_checkpoint(run_dir).training_options
     return TrainOptions.from_json(options) if options else None
 
 
