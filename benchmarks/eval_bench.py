@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from benchmarks.machine import describe
+from benchmarks.profile_parts import part_seconds
 from rvt2cli.eval.journal import Journal, read_journal
 from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.runner import evaluate
@@ -52,15 +53,6 @@ def merged_journal(paths: list[Path], folder: Path) -> Path:
     return journal.path
 
 
-def part_seconds(stats: pstats.Stats) -> dict[str, float]:
-    found = {name: 0.0 for name in PARTS}
-    for (filename, _, function), (_, _, _, cumulative, _) in stats.stats.items():
-        for name, functions in PARTS.items():
-            if any(filename.endswith(suffix) and function == wanted for suffix, wanted in functions):
-                found[name] += cumulative
-    return found
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("journals", nargs="+", type=Path)
@@ -85,7 +77,7 @@ def main() -> None:
         start = time.perf_counter()
         profile.runcall(evaluate, opts, on_outcome=timed, on_start=lambda n: last.__setitem__(0, time.perf_counter()))
         total = time.perf_counter() - start
-    parts = part_seconds(pstats.Stats(profile))
+    parts = part_seconds(pstats.Stats(profile), PARTS)
     spent = sum(e["seconds"] for e in episodes)
     print(f"{len(episodes)} episodes in {spent:.1f} s ({total:.1f} s with start-up), one process")
     print("| task | episodes | successes | s per episode | s per keyframe |")

@@ -220,23 +220,28 @@ def capture_cameras(env, segmentation: dict | None = None) -> dict[str, CameraFr
         sensor = u.scene.sensors[name]
         sensor.capture()
         tex = sensor.get_obs(rgb=True, depth=False, position=True, segmentation=True, apply_texture_transforms=False)
-        color = tex["Color"][0, ..., :3].cpu().numpy()
-        position = tex["Position"][0, ..., :3].cpu().numpy()   # OpenGL camera frame: the camera looks along -z
         ids = tex["Segmentation"][0, ..., 1].cpu().numpy()  # actor/link-level ids, 0 = nothing hit
-        depth = np.where(ids > 0, -position[..., 2], 0.0).astype(np.float32)
         if segmentation is not None:
             segmentation[name] = ids
-        params = sensor.get_params()
-        world2cam = params["extrinsic_cv"][0].cpu().numpy().astype(np.float64)
-        rot_c2w = world2cam[:, :3].T
-        cam2world = np.concatenate([-rot_c2w @ world2cam[:, 3], Rotation.from_matrix(rot_c2w).as_quat()])
-        frames[name] = CameraFrame(
-            rgb=np.clip(np.rint(color * 255.0), 0, 255).astype(np.uint8),
-            depth=depth,
-            intrinsic=params["intrinsic_cv"][0].cpu().numpy().astype(np.float64),
-            cam2world=cam2world,
-        )
+        frames[name] = camera_frame(tex["Color"][0, ..., :3].cpu().numpy(), tex["Position"][0, ..., :3].cpu().numpy(),
+                                    ids, sensor.get_params())
     return frames
+
+
+def camera_frame(color: np.ndarray, position: np.ndarray, ids: np.ndarray, params: dict) -> CameraFrame:
+    """One camera's picture as rvt2 stores it, from SAPIEN's textures (colour in [0, 1], positions in the
+    OpenGL camera frame, which looks along -z, and segmentation ids, 0 where nothing was hit) and the
+    camera's ManiSkill parameters."""
+    depth = np.where(ids > 0, -position[..., 2], 0.0).astype(np.float32)
+    world2cam = params["extrinsic_cv"][0].cpu().numpy().astype(np.float64)
+    rot_c2w = world2cam[:, :3].T
+    cam2world = np.concatenate([-rot_c2w @ world2cam[:, 3], Rotation.from_matrix(rot_c2w).as_quat()])
+    return CameraFrame(
+        rgb=np.clip(np.rint(color * 255.0), 0, 255).astype(np.uint8),
+        depth=depth,
+        intrinsic=params["intrinsic_cv"][0].cpu().numpy().astype(np.float64),
+        cam2world=cam2world,
+    )
 
 
 def segmentation_ids(env, body_names: set[str], include_robot: bool) -> np.ndarray:

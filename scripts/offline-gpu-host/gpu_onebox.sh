@@ -18,7 +18,7 @@
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
 # building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, ddpbench,
-# eval, oracle, replay, repro, offline, recordbench.
+# eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile, evalprofile.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
@@ -187,6 +187,25 @@ PY
       --workers "$WORKERS" --json "$W/record_bench_${TASK_SET:-rlbench18}.json" 2>&1 | tail -3
     phase recordbench $(( $(clock) - t ))
     ;;
+  capturebench)  # the cameras' capture: capture_cameras against SAPIEN's camera groups, 1 and many processes
+    t=$(clock)
+    python3 -m benchmarks.capture_bench --task "${CAPTURE_TASK:-open_drawer}" --processes "${CAPTURE_PROCESSES:-1,8,15}" \
+      --scenes "${CAPTURE_SCENES:-1,8}" --json "$W/capture_bench.json" 2>&1 | tail -14
+    phase capturebench $(( $(clock) - t ))
+    ;;
+  recordprofile)  # where a demo's core-seconds go: PROFILE_DEMOS demos of every task of TASK_SET, one process
+    t=$(clock)
+    python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --profile "${PROFILE_DEMOS:-2}" \
+      --json "$W/record_profile.json" 2>&1 | tail -14
+    phase recordprofile $(( $(clock) - t ))
+    ;;
+  evalprofile)  # where an evaluation episode's core-seconds go: rvt2-18's recorded predictions replayed, one process
+    t=$(clock)
+    python3 -m benchmarks.eval_bench benchmarks/results/rvt2_18/eval_partial/episodes.jsonl.gz \
+      benchmarks/results/rvt2_18/cpu_preview/episodes.jsonl.gz --episodes "${PROFILE_EPISODES:-1}" \
+      --json "$W/eval_profile.json" 2>&1 | tail -34
+    phase evalprofile $(( $(clock) - t ))
+    ;;
   heldout)  # held-out demos for offline scores: HELDOUT_TASKS x 5 from seed 30000 (training demos use 0 upwards)
     t=$(clock)
     "${RVT2[@]}" record --task "$(echo ${HELDOUT_TASKS:-$TASKS} | tr ' ' ,)" --episodes "${HELDOUT_EPISODES:-5}" --seed 30000 \
@@ -270,7 +289,7 @@ PY
     ;;
   results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
-    files=(phases.tsv record_bench_*.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+    files=(phases.tsv record_bench_*.json capture_bench.json record_profile.json eval_profile.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
       e=$(basename "$EXPERIMENT" .toml)
@@ -305,7 +324,7 @@ print("\n".join(all_pieces(json.load(open(sys.argv[1])))))' "$W/export/$RUN/mani
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile" >&2
     exit 2
     ;;
   esac
