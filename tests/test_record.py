@@ -370,7 +370,7 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
     import warnings
 
     import rvt2cli.record.scene as scene
-    from rvt2cli.record.robot_visuals import _parts
+    from rvt2cli.record.robot_visuals import mesh_parts
 
     task = get_task("turn_tap")   # an rvt2-18 scene: the arm is in view of all four cameras
 
@@ -378,7 +378,7 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
         env.reset(seed=0)
         segmentation = {}
         frames = scene.capture_cameras(env, segmentation)
-        triangles = sum(len(part.triangles) for *_, part in _parts(env.unwrapped.agent.robot))
+        triangles = sum(len(part.triangles) for *_, part in mesh_parts(env.unwrapped.agent.robot))
         env.close()
         return frames, segmentation, triangles
 
@@ -403,9 +403,10 @@ def test_a_recorded_episode_names_the_meshes_that_drew_the_robot(push_cube_dir):
 
 
 def test_the_shipped_lighter_panda_is_what_this_maniskill_decimates_to(tmp_path):
-    """panda_visuals.npz is made by `python -m rvt2cli.record.robot_visuals` from the ManiSkill rvt2 pins: made
-    again here, it holds the same parts, for both of ManiSkill's Pandas, at a fifth of the triangles or fewer."""
-    from rvt2cli.record.robot_visuals import MESHES, make_meshes
+    """panda_visuals.npz is made by `python -m rvt2cli.record.make_robot_visuals` from the ManiSkill rvt2 pins:
+    made again here, it holds the same parts, for both of ManiSkill's Pandas, at a fifth of the triangles or fewer."""
+    from rvt2cli.record.make_robot_visuals import make_meshes
+    from rvt2cli.record.robot_visuals import MESHES
 
     counts = make_meshes(tmp_path / "panda_visuals.npz")
     assert set(counts) == {"panda", "panda_wristcam"}
