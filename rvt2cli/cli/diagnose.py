@@ -122,7 +122,7 @@ def _precision_budget(p):
 DIAGNOSTICS = {
     "precision-budget": (_precision_budget, "how precise must a policy be on a task? (the oracle, degraded)",
                          "How precise must a policy be on a task? The oracle's keyframes degraded as a policy's are (rotation "
-                         "bins, millimetres, degrees) on the same seeds.", "tasks"),
+                         "bins, millimetres, degrees) on the same seeds.", "the tasks' experts and the executor, no checkpoint"),
     "stage2-blind": (_stage2_blind, "where stage 2's zoomed box sees nothing (checkpoint + demos)",
                      "Where does stage 2's zoomed box hold nothing to place the keyframe by, and what would keeping "
                      "stage 1's point there give?", "a checkpoint and annotated demos"),
