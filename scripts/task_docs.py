@@ -16,6 +16,34 @@ import os
 import textwrap
 from pathlib import Path
 
+TASK_SETS = """## Task sets
+
+`maniskill9`: eight ManiSkill 3 Panda tasks (insert_peg, plug_charger, lift_peg_upright, pick_cube, place_sphere,
+pull_cube, push_cube, stack_cube) and stack_pyramid. `rlbench18` (rvt2-18): RLBench's 18 tasks (the set of PerAct,
+RVT and RVT-2) rebuilt in ManiSkill from shapes and joints made in code, with RLBench's 249 variations. A task's
+`[[variations]]` give its instruction's values; the seed lays out the scene and the variation changes only the
+instruction and the success check, so the policy must read the instruction.
+
+    rvt2 record --task-set rlbench18 --episodes 100 --workers 30   # episodes spread evenly over each task's variations
+    rvt2 eval --checkpoint runs/x --task-set rlbench18 --paraphrases      # held-out phrasings; success per variation and phrasing
+    rvt2 eval --checkpoint runs/x --task-set rlbench18 --first-phrasing   # each variation's first phrasing, as the paper evaluates
+
+One pool of simulator processes records every task of the set (or of `--task a,b,c`): 30 workers rendering with
+lavapipe recorded rvt2-18's 1,800 demos in 570 s on 32 cores of a 4 x H200 host (docs/BENCHMARKS.md, "Recording
+cost"). On 50 seeds spread over the variations every rvt2-18 expert succeeds on at least 96% and its oracle (its
+keyframes through `rvt2 eval`'s executor) on at least 94% (docs/BENCHMARKS.md, "rvt2-18"). `rvt2 eval` runs the
+tasks in turns, so one stopped part way holds every task's first seeds, and `--resume` finishes it.
+
+The runs on rvt2-18 are experiment files (`experiments/`, docs/RESULTS.md): `rvt2_18` (100 demos per task, 6,000
+steps at batch 192, 100 evaluation seeds per task in two ranges of 50 reported apart, and the held-out
+paraphrases), `rvt2_18_25demos`, and the two colour tasks alone (`rvt2_18_colour`, and `rvt2_18_colour_via` on
+demos whose experts stop above the named target first: `rvt2 record --expert TASK=module:function`); planned:
+`rvt2_18_10demos`, `rvt_18` (RVT for the same training time), `rvt2_18_unseen` (trained without the held-out
+variations of the four compositional tasks, evaluated on them), `rvt2_18_via` (the via experts among 18 tasks)
+and `rvt2_18_phrasings` (`rvt2 train --phrasings all`). `python -m benchmarks.results_table ... --paper
+benchmarks/paper_rlbench18.toml#rvt2` sets a results table beside the paper's (RVT-2, RVT and PerAct, per task).
+
+"""  # the task sets and the runs on them, before the table
 IMAGE_SIZE = 192  # px: a small picture, enough to tell the objects and their colours apart
 
 
@@ -129,9 +157,7 @@ def main() -> None:
         camera ({IMAGE_SIZE} px) after a reset with seed {args.seed}, in variation 0. A task with variations lays out
         the same scene for a seed in every variation: only the instruction and the success check differ.
 
-        | task | environment | variations | task sets |
-        |---|---|---|---|
-        """)]
+        """) + TASK_SETS + "| task | environment | variations | task sets |\n|---|---|---|---|\n"]
     parts[0] += "\n".join(f"| [{t.name}](#{t.name}) | {t.env_id} | {t.num_variations} | {', '.join(t.task_sets) or '-'} |"
                           for t in tasks) + "\n"
     for task in tasks:

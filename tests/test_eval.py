@@ -170,9 +170,9 @@ def test_offline_precision_of_a_checkpoint_on_recorded_demos(tiny_checkpoint, ti
 
 
 def test_stage_2s_box_at_keyframe_starts_and_stage_1s_point_kept_below_a_count(tiny_checkpoint, tiny_dataset):
-    """benchmarks/stage2_blind.py on the tiny checkpoint: one row per keyframe start, each box's count, and the
+    """rvt2 diagnose stage2-blind on the tiny checkpoint: one row per keyframe start, each box's count, and the
     kept error equal to stage 1's exactly where the count is below the threshold."""
-    from benchmarks import stage2_blind
+    from rvt2cli.diagnose import stage2_blind
     from rvt2cli.data import read_episode
     from rvt2cli.data.paths import episode_paths
 
@@ -185,6 +185,21 @@ def test_stage_2s_box_at_keyframe_starts_and_stage_1s_point_kept_below_a_count(t
     assert any(r["points"] < threshold for r in rows) and any(r["points"] >= threshold for r in rows)
     assert all(k["kept_mm"] == (k["stage1_mm"] if k["points"] < threshold else k["stage2_mm"]) for k in kept)
     assert stage2_blind.table(kept, threshold)[-1].startswith("| **all** |")
+
+
+def test_diagnose_prints_its_table_and_writes_its_report(tiny_checkpoint, tiny_dataset, tmp_path, cli):
+    """`rvt2 diagnose stage2-blind` through the command line: the table on stdout, the report with every row and
+    the software that made it in --json (its folder made); bad input is one line."""
+    out = tmp_path / "reports" / "blind.json"
+    r = cli("diagnose", "stage2-blind", "--checkpoint", tiny_checkpoint[0], tiny_dataset, "--min-points", "50", "--json", out)
+    assert r.returncode == 0, r.stderr
+    report = json.loads(out.read_text())
+    assert report["diagnostic"] == "stage2-blind" and report["min_points"] == 50 and "torch" in report["software"]
+    assert report["table"][-1] in r.stdout and {row["task"] for row in report["rows"]} == {"stack_cube"}
+    assert_one_line_error(cli("diagnose", "target-choice", tmp_path / "missing.jsonl"), "missing.jsonl", "episodes.jsonl")
+    assert_one_line_error(cli("diagnose", "precision-budget", "--variants", "rot72,sideways"), "'sideways'", "rotN")
+    r = cli("diagnose")   # no NAME: the list of diagnostics
+    assert r.returncode == 2 and "precision-budget" in r.stderr and "target-choice" in r.stderr
 
 
 def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):

@@ -131,8 +131,7 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
     pre, last = np.array(kfs[-2].position), np.array(kfs[-1].position)
     assert 0.02 < np.linalg.norm(last - pre) < 0.15
     # the insertion ends in the box (rule v3: within 5 mm counts); the reach above the peg ends in free
-    # space. (The grasp's flag depends on how closely the open fingers pass the peg in each demo:
-    # benchmarks/label_bench.py counts it.)
+    # space. (The grasp's flag depends on how closely the open fingers pass the peg in each demo.)
     assert kfs[-1].ignore_collisions and not kfs[0].ignore_collisions
     # samples start at frame 0 and point at the next keyframe
     samples = annotation.keyframes.samples
@@ -141,7 +140,7 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
     assert read_episode(path).keyframes == annotation.keyframes
     # what RVT-2's stage 2 (+-10 cm around the keyframe) sees of the box: part of it at the insertion,
     # nothing at the aligned pose before it, where the held peg keeps the TCP 15-21 cm from the face
-    from benchmarks.stage2_view import measure
+    from rvt2cli.diagnose.stage2_view import measure
 
     view = measure([path], half=0.1)["insert_peg"]
     assert view["last"]["mean_share"] > 0.05 and view["before last"]["episodes_blind"] == 1
@@ -151,19 +150,36 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
 
 
 def test_pick_cube_expert_shows_the_goal_where_maniskills_hides_it():
-    """benchmarks/goal_visibility.py counts pick_cube's goal sphere (hidden by ManiSkill, shown by rvt2) in
-    each camera where the carry is decided. In demo seed 7, ManiSkill's expert decides it at the grasp,
-    where the arm reaching down to the cube under the sphere hides it from all four cameras; rvt2's
-    expert (rvt2cli.record.experts.pick_cube) lifts the cube and draws it back first, and every fixed
-    camera sees the sphere. Both experts succeed."""
-    from benchmarks.goal_visibility import visibility
-    from rvt2cli.record.scene import make_env
+    """pick_cube's goal sphere (hidden by ManiSkill, shown by rvt2) in each camera where the carry is decided: at
+    the keyframe before the last, 8 control steps after the gripper closes there. In demo seed 7, ManiSkill's
+    expert decides it at the grasp, where the arm reaching down to the cube under the sphere hides it from all
+    four cameras; rvt2's expert (rvt2cli.record.experts.pick_cube) lifts the cube and draws it back first, and
+    every fixed camera sees the sphere. Both experts succeed."""
+    from dataclasses import replace
+
+    from mani_skill.utils.structs import Actor
+
+    from rvt2cli.eval.sources import expert_keyframes
+    from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
 
     task = get_task("pick_cube")
     assert task.expert == "rvt2cli.record.experts:pick_cube"
     env = make_env(task)
-    theirs, their_run = visibility(env, task, 7, 8, expert="mani_skill.examples.motionplanning.panda.solutions:solvePickCube")
-    ours, our_run = visibility(env, task, 7, 8)
+
+    def sphere_pixels(expert: str) -> tuple[dict[str, int], str]:
+        run, keyframes = expert_keyframes(env, replace(task, expert=expert), 7)
+        decision = keyframes[-2]
+        assert not decision.gripper_open   # it carries the cube from there
+        frame = decision.frame + (8 if "gripper" in decision.reasons else 0)
+        restore_sim_state(env, run.frames[min(frame, len(run.frames) - 1)].sim)
+        segmentation: dict = {}
+        capture_cameras(env, segmentation)
+        ids = [i for i, obj in env.unwrapped.segmentation_id_map.items()
+               if isinstance(obj, Actor) and obj.name in set(task.show_hidden)]
+        return {camera: int(np.isin(seg, ids).sum()) for camera, seg in segmentation.items()}, run.status
+
+    theirs, their_run = sphere_pixels("mani_skill.examples.motionplanning.panda.solutions:solvePickCube")
+    ours, our_run = sphere_pixels(task.expert)
     assert their_run == our_run == "success"
     assert set(theirs) == set(ours) == set(task.cameras)
     assert sum(theirs.values()) == 0
@@ -370,7 +386,7 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
     import warnings
 
     import rvt2cli.record.scene as scene
-    from rvt2cli.record.robot_visuals import _parts
+    from rvt2cli.record.robot_visuals import mesh_parts
 
     task = get_task("turn_tap")   # an rvt2-18 scene: the arm is in view of all four cameras
 
@@ -378,7 +394,7 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
         env.reset(seed=0)
         segmentation = {}
         frames = scene.capture_cameras(env, segmentation)
-        triangles = sum(len(part.triangles) for *_, part in _parts(env.unwrapped.agent.robot))
+        triangles = sum(len(part.triangles) for *_, part in mesh_parts(env.unwrapped.agent.robot))
         env.close()
         return frames, segmentation, triangles
 
@@ -403,9 +419,10 @@ def test_a_recorded_episode_names_the_meshes_that_drew_the_robot(push_cube_dir):
 
 
 def test_the_shipped_lighter_panda_is_what_this_maniskill_decimates_to(tmp_path):
-    """panda_visuals.npz is made by `python -m rvt2cli.record.robot_visuals` from the ManiSkill rvt2 pins: made
-    again here, it holds the same parts, for both of ManiSkill's Pandas, at a fifth of the triangles or fewer."""
-    from rvt2cli.record.robot_visuals import MESHES, make_meshes
+    """panda_visuals.npz is made by `python -m rvt2cli.record.make_robot_visuals` from the ManiSkill rvt2 pins:
+    made again here, it holds the same parts, for both of ManiSkill's Pandas, at a fifth of the triangles or fewer."""
+    from rvt2cli.record.make_robot_visuals import make_meshes
+    from rvt2cli.record.robot_visuals import MESHES
 
     counts = make_meshes(tmp_path / "panda_visuals.npz")
     assert set(counts) == {"panda", "panda_wristcam"}

@@ -115,9 +115,9 @@ def test_a_search_cut_short_by_the_budget_is_kept_in_the_journal(tmp_path):
 
 @pytest.mark.sim
 def test_pushed_straight_the_peg_stops_at_the_face_and_slides_back_in_the_fingers():
-    """benchmarks/insertion_stops.py on seed 10012: the first insertion leaves the peg's head at the box's
+    """rvt2 diagnose insertion-stops on seed 10012: the first insertion leaves the peg's head at the box's
     face, 4 mm across the hole's axis, and the push slid the peg centimetres back through the fingers."""
-    from benchmarks.insertion_stops import first_insertion, first_insertion_stop
+    from rvt2cli.diagnose.insertion_stops import first_insertion, first_insertion_stop
 
     recorded = _recorded(10012)
     assert first_insertion(recorded["steps"]) == 3
@@ -129,10 +129,10 @@ def test_pushed_straight_the_peg_stops_at_the_face_and_slides_back_in_the_finger
 
 @pytest.mark.sim
 def test_the_charger_starts_its_push_off_the_axis_and_pivots_at_the_face():
-    """benchmarks/insertion_stops.py --task plug_charger on seed 10001 of the 8-task model of results v11:
+    """rvt2 diagnose insertion-stops --task plug_charger on seed 10001 of the 8-task model of results v11:
     where the push starts, the charger is millimetres across the receptacle's axis (0.5 mm of clearance)
     and turned; pushed straight it stops at the face and pivots in the fingers."""
-    from benchmarks.insertion_stops import first_insertion, first_insertion_stop
+    from rvt2cli.diagnose.insertion_stops import first_insertion, first_insertion_stop
 
     recorded = _recorded(10001, V11_INSERTIONS, "plug_charger")
     assert first_insertion(recorded["steps"]) == 3

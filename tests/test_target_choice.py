@@ -1,10 +1,11 @@
-"""benchmarks/target_choice.py: the target a push went for, on scenes the real simulator rebuilds from the
-published rvt2-18 oracle's journal (the expert's keyframes, which always choose the named target)."""
+"""rvt2 diagnose target-choice (rvt2cli/diagnose/target_choice.py): the target a push went for, on scenes the real
+simulator rebuilds from the published rvt2-18 oracle's journal (the expert's keyframes, which always choose the named
+target)."""
 
 import numpy as np
 import pytest
 
-from benchmarks import target_choice
+from rvt2cli.diagnose import target_choice
 from benchmarks.experiment import REPOSITORY
 from rvt2cli.eval.journal import read_journal
 from rvt2cli.record.scene import make_env

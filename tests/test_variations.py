@@ -116,12 +116,12 @@ def test_training_samples_carry_their_own_variations_instruction(slide_demos):
 
 
 def test_instruction_swap_scores_each_observation_under_every_variations_words(slide_demos, tmp_path):
-    """benchmarks/instruction_swap.py on four real slide_block demos and a policy trained on them briefly: every
+    """rvt2 diagnose instruction-swap on four real slide_block demos and a policy trained on them briefly: every
     observation is predicted under its own instruction and the three other colours'; the own instruction's
     error is the one `rvt2 eval --offline` measures on the same demos."""
     from conftest import TINY_TRAIN
 
-    from benchmarks.instruction_swap import alternatives, swap_report
+    from rvt2cli.diagnose.instruction_swap import alternatives, swap_report
     from rvt2cli.data.paths import episode_paths
     from rvt2cli.eval.offline import evaluate_offline
     from rvt2cli.keyframes.extract import extract_file
@@ -147,8 +147,8 @@ def test_instruction_swap_scores_each_observation_under_every_variations_words(s
         assert all(len(others) == 3 for others in row["others_mm"])
         assert (row["chosen"] is None) == (row["deciding"] == 0)
 
-    # benchmarks/phrasing_bench.py on the same run: each keyframe start under every phrasing of its own variation
-    from benchmarks.phrasing_bench import phrasing_report, phrasings
+    # rvt2 diagnose phrasings on the same run: each keyframe start under every phrasing of its own variation
+    from rvt2cli.diagnose.phrasings import phrasing_report, phrasings
     from rvt2cli.train.samples import load_samples
 
     task = get_task(TASK)

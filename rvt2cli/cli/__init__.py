@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "rvt2cli.cli.pack_samples",
     "rvt2cli.cli.train",
     "rvt2cli.cli.eval",
+    "rvt2cli.cli.diagnose",
     "rvt2cli.cli.export",
     "rvt2cli.cli.doctor",
 ]

@@ -31,7 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("--config", help="model config: rvt2 (the paper, default), small (CPU), rvt (RVT-1-like ablation)")
     p.add_argument("--rotation-bins", type=integer(4, 720), metavar="N",
                    help="Euler-angle bins per axis (default: the config's 72, i.e. 5 degrees, as the paper; "
-                        "360 gives 1 degree, which a 3 mm insertion needs: benchmarks/precision_budget.py)")
+                        "360 gives 1 degree, which a 3 mm insertion needs: rvt2 diagnose precision-budget)")
     p.add_argument("--rotation-sigma", type=number(0.0, 45.0), metavar="DEG",
                    help="train rotations against a Gaussian of DEG degrees around the true angle instead of its one "
                         "bin (default 0: one bin, as the paper); fine bins learn from their neighbours, and the "

@@ -23,7 +23,7 @@ robot with joint encoders could. The grid's pitch is the task's `search_pitch_mm
 retract its `search_retract_mm`; tasks without a pitch push straight, as RLBench's and the paper's
 executor do (`rvt2 eval --no-insertion-search`: every task). The grid is sized to how far a policy misses,
 not to the clearance: its 40 probes must reach that far within the episode's control steps, at about 19
-steps a probe with a 4 mm retract (`benchmarks.precision_budget --search-pitch/--search-retract` compares
+steps a probe with a 4 mm retract (`rvt2 diagnose precision-budget --search-pitch/--search-retract` compares
 grids on the oracle; docs/RESULTS.md v12).
 """
 

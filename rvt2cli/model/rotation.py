@@ -3,7 +3,7 @@
 The network scores `rotation_bins` bins per axis; a prediction decodes to its best bin refined by its
 neighbours' scores (`decode_euler`): a 5-degree bin centre is up to 2.5 degrees off per axis, while
 the expert's own insert_peg keyframes, turned by 1 degree, insert the peg in 25% of episodes and by
-half a degree in 56% (benchmarks/precision_budget.py).
+half a degree in 56% (rvt2 diagnose precision-budget).
 
 Training targets are the true bin (the paper), or with `rotation_sigma_deg` > 0 a circular Gaussian
 over the bins centred on the true angle itself (`soft_bin_targets`, "circular smooth labels"): fine bins

@@ -9,7 +9,7 @@ views of the arm 0.07-0.15% of a fixed camera's depth pixels move by more than 1
 (`benchmarks/robot_visuals_bench.py`, tests/test_record.py). Smaller parts, the fingers among them, keep
 every triangle: they fill the wrist camera's view.
 
-The decimated parts ship with rvt2 (`panda_visuals.npz`, made by `python -m rvt2cli.record.robot_visuals`
+The decimated parts ship with rvt2 (`panda_visuals.npz`, made by `python -m rvt2cli.record.make_robot_visuals`
 from ManiSkill's meshes): every machine draws the same arm, and no machine needs open3d to record. A part
 that ManiSkill draws differently from the one decimated (another ManiSkill) is drawn whole.
 
@@ -31,7 +31,7 @@ DESCRIPTION = (f"visual mesh parts over {MIN_PART_TRIANGLES} triangles decimated
                f"{MAX_PART_TRIANGLES} (rvt2cli.record.robot_visuals)")
 
 
-def _part_key(filename: str, index: int, vertices: np.ndarray, triangles: np.ndarray) -> str:
+def part_key(filename: str, index: int, vertices: np.ndarray, triangles: np.ndarray) -> str:
     """A mesh part by its file, its place in it and its geometry: another ManiSkill's mesh gets another key."""
     digest = hashlib.sha1(np.ascontiguousarray(vertices, np.float32).tobytes())
     digest.update(np.ascontiguousarray(triangles, np.uint32).tobytes())
@@ -44,7 +44,7 @@ def _shipped() -> dict[str, np.ndarray]:
         return {name: data[name] for name in data.files}
 
 
-def _parts(robot):
+def mesh_parts(robot):
     """(render body, shape, part index, part) for every triangle-mesh part of the articulation's links."""
     import sapien
 
@@ -57,23 +57,6 @@ def _parts(robot):
                         yield body, shape, index, part
 
 
-def _decimate(vertices: np.ndarray, triangles: np.ndarray):
-    """One part reduced to its share of triangles: (vertices, triangles, normals). Needs open3d (making the file)."""
-    import open3d as o3d
-
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices.astype(np.float64)),
-                                     o3d.utility.Vector3iVector(triangles.astype(np.int32)))
-    # glTF splits vertices along hard edges; unwelded, the decimation would tear the surface open there
-    mesh = mesh.merge_close_vertices(1e-6)
-    mesh.remove_degenerate_triangles()
-    mesh.remove_duplicated_triangles()
-    share = min(MAX_PART_TRIANGLES, int(len(triangles) * TRIANGLE_SHARE))
-    mesh = mesh.simplify_quadric_decimation(max(MIN_PART_TRIANGLES, share))
-    mesh.compute_vertex_normals()
-    return (np.asarray(mesh.vertices, np.float32), np.asarray(mesh.triangles, np.uint32),
-            np.asarray(mesh.vertex_normals, np.float32))
-
-
 def lighten_robot_visuals(robot) -> None:
     """Draw each link of a ManiSkill articulation with the shipped decimated parts where it has them: its render
     body is replaced by one holding those parts and the rest of its parts as they were."""
@@ -81,9 +64,9 @@ def lighten_robot_visuals(robot) -> None:
 
     shipped = _shipped()
     bodies: dict[int, tuple] = {}
-    for body, shape, index, part in _parts(robot):
+    for body, shape, index, part in mesh_parts(robot):
         vertices, triangles = np.asarray(part.vertices, np.float32), np.asarray(part.triangles, np.uint32)
-        key = _part_key(shape.filename, index, vertices, triangles) if len(triangles) > MIN_PART_TRIANGLES else None
+        key = part_key(shape.filename, index, vertices, triangles) if len(triangles) > MIN_PART_TRIANGLES else None
         if key is not None and f"{key}/vertices" in shipped:
             v, t, n = (shipped[f"{key}/{name}"] for name in ("vertices", "triangles", "normals"))
             uv = np.zeros((len(v), 2), np.float32)   # untextured: the colour is the material's
@@ -104,37 +87,3 @@ def lighten_robot_visuals(robot) -> None:
         entity = old.entity
         entity.remove_component(old)
         entity.add_component(new)
-
-
-def make_meshes(path: Path = MESHES) -> dict[str, dict[str, int]]:
-    """Decimate the Panda's large visual mesh parts, as ManiSkill draws them, into `path` (needs open3d).
-    Returns each robot's triangle counts {name: {"before": ..., "after": ...}}."""
-    from rvt2cli.atomic import atomic_open
-    from rvt2cli.record.scene import make_env
-    from rvt2cli.tasks import get_task
-
-    arrays, counts = {}, {}
-    for task in ("push_cube", "insert_peg"):   # ManiSkill's two Pandas: "panda", "panda_wristcam" (a RealSense on the hand)
-        env = make_env(get_task(task), lighten=False)
-        env.reset(seed=0)
-        robot = env.unwrapped.agent.robot
-        before = after = 0
-        for _, shape, index, part in _parts(robot):
-            vertices, triangles = np.asarray(part.vertices, np.float32), np.asarray(part.triangles, np.uint32)
-            before += len(triangles)
-            if len(triangles) <= MIN_PART_TRIANGLES:
-                after += len(triangles)
-                continue
-            key = _part_key(shape.filename, index, vertices, triangles)
-            v, t, n = _decimate(vertices, triangles)
-            arrays.update({f"{key}/vertices": v, f"{key}/triangles": t, f"{key}/normals": n})
-            after += len(t)
-        counts[robot.name] = {"before": before, "after": after}
-        env.close()
-    with atomic_open(path) as f:
-        np.savez_compressed(f, **arrays)
-    return counts
-
-
-if __name__ == "__main__":
-    print(f"{MESHES}: Panda visual triangles {make_meshes()}")

@@ -2,7 +2,7 @@
 predicted under every phrasing of its own variation: the task's trained templates and its held-out
 paraphrases, without a simulator.
 
-    python -m benchmarks.phrasing_bench --checkpoint RUN DEMOS... [--device cuda] [--json FILE]
+    rvt2 diagnose phrasings --checkpoint RUN DEMOS... [--device cuda] [--json FILE]
 
 `rvt2 eval --paraphrases` says which phrasings fail closed loop ("Success per phrasing"); this says where.
 Per task, keyframe and phrasing: the stage-2 error against the demo's next keyframe (median over the
@@ -16,7 +16,7 @@ from collections import defaultdict
 import numpy as np
 import torch
 
-from benchmarks.instruction_swap import demo_parser, predicted_positions, run
+from rvt2cli.diagnose.instruction_swap import predicted_positions
 from rvt2cli.eval.offline import load_demos_for
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.tasks import get_task
@@ -84,13 +84,3 @@ def markdown(report: dict) -> str:
                 f"{row[t]['error_mm']:.1f} ({row[t]['far']})" if t in row else "-" for t in templates) + " |")
         lines.append("")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> dict:
-    args = demo_parser(__doc__).parse_args(argv)
-    return run("phrasing_bench", lambda: phrasing_report(args.checkpoint, args.demos, args.device, args.batch_size),
-               markdown, args.json)
-
-
-if __name__ == "__main__":
-    main()

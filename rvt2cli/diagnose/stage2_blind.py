@@ -3,7 +3,7 @@ closed loop makes), stage 1's and stage 2's error against the demo's next keyfra
 lie in stage 2's zoomed box around stage 1's point, then the error of the prediction that keeps stage 1's point
 where that box holds fewer than N points (`rvt2 eval --stage2-min-points N`).
 
-    python -m benchmarks.stage2_blind --checkpoint RUN DEMOS... [--min-points 200] [--json FILE]
+    rvt2 diagnose stage2-blind --checkpoint RUN DEMOS... [--min-points 200] [--device cuda] [--json FILE]
 
 Stage 2 renders only +-(workspace half extent / zoom) around stage 1's point, +-10 cm for `rvt2` in the 0.8 m
 workspace. stack_blocks carries each block 12 cm above the tower, so the box around that keyframe ends 2 cm above
@@ -11,15 +11,9 @@ the tower's top and holds almost nothing; stage 2 then places the keyframe by no
 here is the one `rvt2 eval` runs (`predict`, the same box and count).
 """
 
-import argparse
-import json
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
-
-from benchmarks.machine import describe
-from rvt2cli.errors import UserError
 
 
 def keyframe_starts(checkpoint: str, demos, device: str = "cpu", batch_size: int = 8) -> list[dict]:
@@ -68,26 +62,11 @@ def table(rows: list[dict], min_points: int) -> list[str]:
     return lines
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", required=True)
-    p.add_argument("demos", nargs="+", help="annotated demo files or folders (rvt2 extract-keyframes)")
-    p.add_argument("--min-points", type=int, default=200, help="keep stage 1's point below this many (default 200)")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--json", help="write the rows and the table here too")
-    args = p.parse_args(argv)
-    try:
-        rows = with_min_points(keyframe_starts(args.checkpoint, args.demos, args.device), args.min_points)
-    except UserError as error:
-        raise SystemExit(str(error)) from None
-    lines = table(rows, args.min_points)
-    print(f"stage 2's box at keyframe starts: {args.checkpoint}; {describe()}")
-    print("\n".join(lines))
-    if args.json:
-        Path(args.json).write_text(json.dumps({"machine": describe(), "checkpoint": args.checkpoint, "demos": args.demos,
-                                               "min_points": args.min_points, "table": lines, "rows": rows}, indent=2))
-    return 0
+def report(checkpoint: str, demos, min_points: int = 200, device: str = "cpu", batch_size: int = 8) -> dict:
+    rows = with_min_points(keyframe_starts(checkpoint, demos, device, batch_size), min_points)
+    return {"checkpoint": str(checkpoint), "demos": [str(d) for d in demos], "min_points": min_points,
+            "table": table(rows, min_points), "rows": rows}
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def markdown(report: dict) -> str:
+    return "\n".join([f"stage 2's box at keyframe starts: {report['checkpoint']}", "", *report["table"]]) + "\n"

@@ -9,9 +9,9 @@ executor) with its keyframes degraded the way a policy's predictions are, on the
   rotation error, where `rotN` is only its quantisation;
 - `A+B`: both, e.g. `rot360+pos2`.
 
-    python -m benchmarks.precision_budget [--tasks insert_peg,plug_charger] [--variants exact,rot72,rot360,pos2]
-                                          [--seeds 20] [--first-seed 10000] [--workers 2] [--json out.json]
-                                          [--no-insertion-search] [--search-pitch MM] [--search-retract MM]
+    rvt2 diagnose precision-budget [--tasks insert_peg,plug_charger] [--variants exact,rot72,rot360,pos2]
+                                   [--seeds 20] [--first-seed 10000] [--workers 2] [--json out.json]
+                                   [--no-insertion-search] [--search-pitch MM] [--search-retract MM]
 
 Per task and variant: success (Wilson 95% interval) and, for insertion tasks, the median closest gap to
 success of the failed episodes. Every episode is `rvt2cli.eval.rollout.run_episode`, the loop `rvt2 eval`
@@ -19,16 +19,14 @@ runs. `--search-pitch` / `--search-retract` run the insertion search with anothe
 tasks/*.toml give (`search_pitch_mm`, `search_retract_mm`), to compare grids on seeds no policy is scored on.
 """
 
-import argparse
-import json
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from benchmarks.machine import describe
 from rvt2cli.data.keyframes import Keyframe
+from rvt2cli.errors import UserError
 from rvt2cli.eval.report import wilson_interval
 from rvt2cli.eval.sources import OracleSource
 from rvt2cli.model.rotation import bins_to_quaternion, quaternion_to_bins
@@ -53,7 +51,7 @@ class Degradation:
                 field, kind = VARIANT_PREFIXES[prefix]
                 fields[field] = kind(part[len(prefix):])
             except (KeyError, ValueError):
-                raise SystemExit(f"precision_budget: unknown variant {part!r} (exact, rotN, posM, turnD, A+B)") from None
+                raise UserError(f"unknown variant {part!r}; give exact, rotN, posM, turnD or A+B (e.g. rot360+pos2)") from None
         return Degradation(**fields)
 
     def apply(self, keyframe: Keyframe, rng: np.random.Generator) -> Keyframe:
@@ -101,50 +99,38 @@ def _episode(job: tuple[str, str, int, bool, dict]) -> dict:
             "probes": sum(s.reach.probes for s in outcome.steps)}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", default="insert_peg,plug_charger")
-    parser.add_argument("--variants", default="exact,rot72,rot360,pos2")
-    parser.add_argument("--seeds", type=int, default=20)
-    parser.add_argument("--first-seed", type=int, default=10_000)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--no-insertion-search", dest="search", action="store_false",
-                        help="push insertions straight, without the executor's search for the hole")
-    parser.add_argument("--search-pitch", type=float, metavar="MM",
-                        help="the insertion search's grid pitch for every task in --tasks (default: tasks/*.toml's)")
-    parser.add_argument("--search-retract", type=float, metavar="MM",
-                        help="how far each probe backs off the face (default: tasks/*.toml's)")
-    parser.add_argument("--json", help="write results here")
-    args = parser.parse_args()
-    grid = {k: v for k, v in (("search_pitch_mm", args.search_pitch), ("search_retract_mm", args.search_retract))
-            if v is not None}
+def budget(tasks, variants, seeds: int = 20, first_seed: int = 10_000, workers: int = 2, search: bool = True,
+           grid: dict | None = None) -> dict:
+    """Every variant (`Degradation.parse`) of the oracle on `seeds` seeds of each task: one row per task and variant
+    (success, its interval, the failed episodes' median closest gap) and every episode. `grid`: search_pitch_mm
+    and/or search_retract_mm for every task, instead of tasks/*.toml's."""
+    from rvt2cli.tasks import get_task
+
+    grid = grid or {}
     if any(v <= 0 for v in grid.values()):
-        raise SystemExit("precision_budget: --search-pitch and --search-retract must be > 0 (mm)")
-    tasks, variants = args.tasks.split(","), args.variants.split(",")
+        raise UserError("--search-pitch and --search-retract must be > 0 (mm)")
+    for name in tasks:
+        get_task(name)   # an unknown task is one line before any episode runs
     for v in variants:
         Degradation.parse(v)
-    jobs = [(v, t, args.first_seed + i, args.search, grid) for t in tasks for v in variants for i in range(args.seeds)]
-    with ProcessPoolExecutor(args.workers) as pool:
+    jobs = [(v, t, first_seed + i, search, grid) for t in tasks for v in variants for i in range(seeds)]
+    with ProcessPoolExecutor(workers) as pool:
         episodes = list(pool.map(_episode, jobs))
     rows = []
-    print("| task | variant | success (95% CI) | failed: median closest gap mm |\n|---|---|---|---|")
     for t in tasks:
         for v in variants:
             mine = [e for e in episodes if e["task"] == t and e["variant"] == v]
             wins = sum(e["success"] for e in mine)
-            lo, hi = wilson_interval(wins, len(mine))
             gaps = [e["closest_gap_mm"] for e in mine if not e["success"] and e["closest_gap_mm"] is not None]
-            gap = float(np.median(gaps)) if gaps else None
-            rows.append({"task": t, "variant": v, "successes": wins, "episodes": len(mine), "ci95": [lo, hi],
-                         "median_gap_mm": gap})
-            print(f"| {t} | {v} | {wins / len(mine):.0%} ({wins}/{len(mine)}; {lo:.0%}-{hi:.0%}) | "
-                  f"{'-' if gap is None else f'{gap:.1f}'} |", flush=True)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"machine": describe(), "first_seed": args.first_seed, "insertion_search": args.search,
-                       "search_grid_mm": grid, "rows": rows,
-                       "episodes": episodes}, f, indent=2)
+            rows.append({"task": t, "variant": v, "successes": wins, "episodes": len(mine),
+                         "ci95": list(wilson_interval(wins, len(mine))), "median_gap_mm": float(np.median(gaps)) if gaps else None})
+    return {"first_seed": first_seed, "insertion_search": search, "search_grid_mm": grid, "rows": rows, "episodes": episodes}
 
 
-if __name__ == "__main__":
-    main()
+def markdown(report: dict) -> str:
+    lines = ["| task | variant | success (95% CI) | failed: median closest gap mm |", "|---|---|---|---|"]
+    for r in report["rows"]:
+        (lo, hi), gap = r["ci95"], r["median_gap_mm"]
+        lines.append(f"| {r['task']} | {r['variant']} | {r['successes'] / r['episodes']:.0%} ({r['successes']}/{r['episodes']}; "
+                     f"{lo:.0%}-{hi:.0%}) | {'-' if gap is None else f'{gap:.1f}'} |")
+    return "\n".join(lines) + "\n"

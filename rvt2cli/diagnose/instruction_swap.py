@@ -1,7 +1,7 @@
 """Does the instruction decide where the policy goes? Recorded demos, each observation predicted under its own
 instruction and under every other variation's (the same template), without a simulator.
 
-    python -m benchmarks.instruction_swap --checkpoint RUN DEMOS... [--device cuda] [--json FILE]
+    rvt2 diagnose instruction-swap --checkpoint RUN DEMOS... [--device cuda] [--decides-mm 20] [--json FILE]
 
 On rvt2-18 only the instruction tells a task's variations apart (which colour, which object, which slot). A
 closed-loop `wrong_target` failure is either the policy not reading the words (its prediction barely moves
@@ -17,15 +17,12 @@ at the previous keyframe ("start": what a closed loop sees) apart from those on 
   5 mm of the nearest: two variations may rightly share a place).
 """
 
-import argparse
 import dataclasses
-import json
 from collections import defaultdict
 
 import numpy as np
 import torch
 
-from rvt2cli.errors import UserError
 from rvt2cli.eval.offline import load_demos_for
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.tasks import get_task
@@ -105,39 +102,3 @@ def markdown(report: dict) -> str:
         lines.append(f"| {r['task']} | {r['keyframe']}{' start' if r['start'] else ''} | {r['samples']} | {r['alternatives']} | {r['error_mm']:.1f} | "
                      f"{r['moved_mm']:.1f} | {r['deciding']} | {chosen} |")
     return "\n".join(lines) + "\n"
-
-
-def demo_parser(doc: str) -> argparse.ArgumentParser:
-    """The command line of a benchmark that predicts recorded demos under other words (this one, phrasing_bench)."""
-    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
-    parser.add_argument("demos", nargs="+", help="demo files or folders")
-    parser.add_argument("--checkpoint", required=True)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--json")
-    return parser
-
-
-def run(name: str, build, table, json_path: str | None) -> dict:
-    """`build()`'s report printed as `table(report)` and written to `json_path`; a bad input is one line."""
-    try:
-        report = build()
-    except UserError as e:
-        raise SystemExit(f"{name}: {e}") from None
-    print(table(report), end="")
-    if json_path:
-        with open(json_path, "w") as f:
-            json.dump(report, f, indent=2)
-    return report
-
-
-def main(argv: list[str] | None = None) -> dict:
-    parser = demo_parser(__doc__)
-    parser.add_argument("--decides-mm", type=float, default=20.0)
-    args = parser.parse_args(argv)
-    return run("instruction_swap", lambda: swap_report(args.checkpoint, args.demos, args.device, args.batch_size,
-                                                       args.decides_mm), markdown, args.json)
-
-
-if __name__ == "__main__":
-    main()

@@ -17,18 +17,15 @@ Whether it went in is measured for both. With `--searched`, an `rvt2 eval` folde
 with the search (an `rvt2 eval --replay` of the journal, or the same checkpoint evaluated again: up to its
 first insertion an episode is the same), each episode is also marked by whether it succeeded there.
 
-    python -m benchmarks.insertion_stops JOURNAL [--task plug_charger] [--searched EVAL_DIR] [--workers 2] [--json out.json]
+    rvt2 diagnose insertion-stops JOURNAL [--task plug_charger] [--searched EVAL_DIR] [--workers 2] [--json out.json]
 """
 
-import argparse
-import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from benchmarks.inhand_bench import in_hand
-from benchmarks.machine import describe
 from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import NAME, read_journal
 
@@ -47,7 +44,11 @@ _envs: dict = {}
 
 def peg_in_hand_mm(env) -> float:
     """How far the peg's centre sits ahead of the TCP along the gripper's x axis (the peg's axis), mm."""
-    return 1000.0 * float(in_hand(env, "peg")[0][0])
+    from rvt2cli.record.scene import tcp_pose
+
+    tcp = tcp_pose(env).astype(np.float64)
+    peg = env.unwrapped.peg.pose.raw_pose[0].cpu().numpy().astype(np.float64)
+    return 1000.0 * float(Rotation.from_quat(tcp[3:]).inv().apply(peg[:3] - tcp[:3])[0])
 
 
 def first_insertion_stop(record: dict) -> dict:
@@ -59,7 +60,7 @@ def first_insertion_stop(record: dict) -> dict:
     from rvt2cli.tasks import get_task
 
     if record["task"] not in BANDS_MM:
-        raise ValueError(f"insertion_stops measures {', '.join(BANDS_MM)}, not {record['task']}")
+        raise UserError(f"insertion-stops measures {', '.join(BANDS_MM)}, not {record['task']}")
     index = first_insertion(record["steps"])
     if index is None:
         return {"seed": record["seed"], "insertion": None}
@@ -110,60 +111,59 @@ def _median(values: list[float]) -> float | None:
 def _journal(path: Path) -> list[dict]:
     try:
         return read_journal(path)[1]
-    except UserError as error:
-        raise SystemExit(f"insertion_stops: {error}") from None
+    except OSError as error:
+        raise UserError(f"{path}: cannot read it ({error.strerror}); give an evaluation's episodes.jsonl") from None
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("journal", type=Path, help="a policy's rvt2 eval journal (episodes.jsonl)")
-    parser.add_argument("--task", choices=sorted(BANDS_MM), default="insert_peg")
-    parser.add_argument("--searched", type=Path, help="an `rvt2 eval` folder of the same episodes with the search (a --replay of the journal, or the same checkpoint)")
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--json", help="write the stops here")
-    args = parser.parse_args()
-    if not args.journal.is_file():
-        raise SystemExit(f"insertion_stops: {args.journal}: no such evaluation journal (an episodes.jsonl)")
-    records = [r for r in _journal(args.journal) if r["task"] == args.task and r["source"] == "policy"]
+def report(journal, task: str = "insert_peg", searched=None, workers: int = 2) -> dict:
+    """Every policy episode of `task` in the `journal` replayed to its first insertion (`first_insertion_stop`),
+    gathered into bands of how far across the axis it stopped. `searched`: an `rvt2 eval` folder of the same
+    episodes with the search, whose successes mark each stop."""
+    journal = Path(journal)
+    if task not in BANDS_MM:
+        raise UserError(f"insertion-stops measures {', '.join(BANDS_MM)}, not {task}")
+    if not journal.is_file():
+        raise UserError(f"{journal}: no such evaluation journal (an episodes.jsonl)")
+    records = [r for r in _journal(journal) if r["task"] == task and r["source"] == "policy"]
     if not records:
-        raise SystemExit(f"insertion_stops: {args.journal}: no {args.task} episodes of a policy")
-    searched = {}
-    if args.searched:
-        if not (args.searched / NAME).is_file():
-            raise SystemExit(f"insertion_stops: {args.searched / NAME}: no evaluation journal; give an `rvt2 eval --out` folder")
-        searched = {r["seed"]: r["success"] for r in _journal(args.searched / NAME) if r["task"] == args.task}
-    with ProcessPoolExecutor(args.workers) as pool:
+        raise UserError(f"{journal}: no {task} episodes of a policy; give an evaluation of {task}")
+    successes = {}
+    if searched:
+        if not (Path(searched) / NAME).is_file():
+            raise UserError(f"{Path(searched) / NAME}: no evaluation journal; give an `rvt2 eval --out` folder")
+        successes = {r["seed"]: r["success"] for r in _journal(Path(searched) / NAME) if r["task"] == task}
+    with ProcessPoolExecutor(workers) as pool:
         stops = list(pool.map(first_insertion_stop, records))
     for stop in stops:
-        if stop["seed"] in searched:
-            stop["searched_success"] = searched[stop["seed"]]
+        if stop["seed"] in successes:
+            stop["searched_success"] = successes[stop["seed"]]
     inserted = [s for s in stops if s["insertion"] is not None]
-    limits = BANDS_MM[args.task]
-    bands = [_band(0.0, limits)] + [_band(b + 1e-9, limits) for b in limits]
-    peg = args.task == "insert_peg"
-    where = ("the peg's head after the first, pushed straight, across the hole's axis" if peg else
-             "the charger before the first (where the push starts), across the receptacle's axis")
-    last = "peg slid back in the fingers, median mm" if peg else "turn from the goal, median deg"
-    print(f"{args.task}, {len(records)} episodes, {len(inserted)} with an insertion; {where}:\n")
-    print(f"| across the axis | episodes | went in | success with the search | {last} |\n|---|---|---|---|---|")
+    limits = BANDS_MM[task]
+    peg = task == "insert_peg"
     rows = []
-    for band in bands:
+    for band in [_band(0.0, limits)] + [_band(b + 1e-9, limits) for b in limits]:
         mine = [s for s in inserted if _band(s["across_mm"], limits) == band]
-        went = sum(s["went_in"] for s in mine)
-        found = sum(s.get("searched_success", False) for s in mine)
         if peg:  # of the pegs that did not go in
             detail_key, detail = "slid_back_mm_median_not_in", _median([s["slid_back_mm"] for s in mine if not s["went_in"]])
         else:    # of every charger in the band
             detail_key, detail = "turn_deg_median", _median([s["turn_deg"] for s in mine])
-        rows.append({"band": band, "episodes": len(mine), "went_in": went, "searched_success": found if searched else None,
+        rows.append({"band": band, "episodes": len(mine), "went_in": sum(s["went_in"] for s in mine),
+                     "searched_success": sum(s.get("searched_success", False) for s in mine) if searched else None,
                      detail_key: detail})
+    return {"task": task, "journal": str(journal), "searched": str(searched or ""), "episodes": len(records),
+            "with_insertion": len(inserted), "rows": rows, "stops": stops}
+
+
+def markdown(report: dict) -> str:
+    peg = report["task"] == "insert_peg"
+    where = ("the peg's head after the first, pushed straight, across the hole's axis" if peg else
+             "the charger before the first (where the push starts), across the receptacle's axis")
+    last = "peg slid back in the fingers, median mm" if peg else "turn from the goal, median deg"
+    lines = [f"{report['task']}, {report['episodes']} episodes, {report['with_insertion']} with an insertion; {where}:", "",
+             f"| across the axis | episodes | went in | success with the search | {last} |", "|---|---|---|---|---|"]
+    for row in report["rows"]:
+        detail = row.get("slid_back_mm_median_not_in", row.get("turn_deg_median"))
         shown = "-" if detail is None else (f"{detail:.0f}" if peg else f"{detail:.1f}")
-        print(f"| {band} | {len(mine)} | {went} | {found if searched else '-'} | {shown} |")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"machine": describe(), "task": args.task, "journal": str(args.journal), "searched": str(args.searched or ""),
-                       "rows": rows, "stops": stops}, f, indent=2)
-
-
-if __name__ == "__main__":
-    main()
+        found = "-" if row["searched_success"] is None else row["searched_success"]
+        lines.append(f"| {row['band']} | {row['episodes']} | {row['went_in']} | {found} | {shown} |")
+    return "\n".join(lines) + "\n"

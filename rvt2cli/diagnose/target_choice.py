@@ -2,7 +2,7 @@
 a named colour, the push's direction says which target the policy went for, whether or not the object ended
 on it.
 
-    python -m benchmarks.target_choice JOURNAL... [--source oracle] [--via] [--json FILE]
+    rvt2 diagnose target-choice JOURNAL... [--source oracle] [--via] [--json FILE]
 
 Each policy episode (or the oracle's: the expert's keyframes, which choose the named target every time) of
 reach_and_drag or slide_block_to_color_target in the evaluation journals (`rvt2 eval`'s episodes.jsonl, or its
@@ -20,14 +20,11 @@ hover above the push's start and the descent onto it); the report also says how 
 nearest the named target and how often the push then went for the target it had stopped above.
 """
 
-import argparse
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.machine import describe
 from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import read_journal
 from rvt2cli.eval.report import wilson_interval
@@ -144,51 +141,48 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
     return out
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("journals", nargs="+", help="evaluation journals (episodes.jsonl or episodes.jsonl.gz)")
-    p.add_argument("--source", choices=("policy", "oracle"), default="policy", help="whose episodes (default policy)")
-    p.add_argument("--via", action="store_true",
-                   help="the policy learnt from experts that stop above the named target: report its stops too")
-    p.add_argument("--json", help="write the rows and the summary here too")
-    args = p.parse_args(argv)
+def read_records(journals) -> list[dict]:
+    """The episode records of evaluation journals (episodes.jsonl, or its gzip copy)."""
     records = []
-    for path in args.journals:
+    for path in journals:
         try:
             records += read_journal(Path(path))[1]
         except OSError as error:
-            raise SystemExit(f"{path}: cannot read it ({error.strerror}); give an evaluation's episodes.jsonl") from None
-        except UserError as error:
-            raise SystemExit(str(error)) from None
-    present = [t for t in TASKS if any(r["task"] == t and r["source"] == args.source for r in records)]
-    if not present:
-        raise SystemExit(f"no {args.source} episode of {' or '.join(TASKS)} in {', '.join(args.journals)}; "
-                         "give an evaluation of them")
+            raise UserError(f"{path}: cannot read it ({error.strerror}); give an evaluation's episodes.jsonl") from None
+    return records
 
+
+def report(journals, source: str = "policy", via: bool = False) -> dict:
+    """The rows (`episode_choices`) and their summary per task (`summarise`) of the journals' episodes of `source`."""
+    records = read_records(journals)
+    present = [t for t in TASKS if any(r["task"] == t and r["source"] == source for r in records)]
+    if not present:
+        raise UserError(f"no {source} episode of {' or '.join(TASKS)} in {', '.join(map(str, journals))}; "
+                        "give an evaluation of them")
     from rvt2cli.record.scene import make_env
 
     envs = {name: make_env(get_task(name), cameras=[]) for name in present}
-    rows = episode_choices(envs, records, args.source, args.via)
-    summary = summarise(rows)
-    print(f"which target the {args.source}'s push went for; {describe()}")
-    print("| task | episodes | a clear choice | the named target chosen | chance | success | success when the named target was chosen |")
-    print("|---|---|---|---|---|---|---|")
-    for task, s in summary.items():
+    try:
+        rows = episode_choices(envs, records, source, via)
+    finally:
+        for env in envs.values():
+            env.close()
+    return {"journals": [str(j) for j in journals], "source": source, "via": via, "summary": summarise(rows), "rows": rows}
+
+
+def markdown(report: dict) -> str:
+    lines = [f"which target the {report['source']}'s push went for", "",
+             "| task | episodes | a clear choice | the named target chosen | chance | success | success when the named target was chosen |",
+             "|---|---|---|---|---|---|---|"]
+    for task, s in report["summary"].items():
         low, high = s["named_chosen_interval"]
         share = s["named_chosen"] / s["clear_choices"] if s["clear_choices"] else 0.0
-        print(f"| {task} | {s['episodes']} | {s['clear_choices']} | {s['named_chosen']} ({share:.0%}; {low:.0%}-{high:.0%}) "
-              f"| {s['chance']:.0%} | {s['success']} | {s['success_when_named_chosen']} |")
-    if args.via:
-        print("\nThe stop above a target before the push (the keyframe two before it):")
-        print("| task | episodes with a stop | nearest the named target | a clear push after it | the push went for the target of the stop |")
-        print("|---|---|---|---|---|")
-        for task, s in summary.items():
-            print(f"| {task} | {s['stops']} | {s['stops_above_named']} | {s['pushes_after_stop']} | {s['pushes_to_stop_target']} |")
-    if args.json:
-        Path(args.json).write_text(json.dumps({"machine": describe(), "journals": args.journals, "source": args.source, "via": args.via,
-                                               "summary": summary, "rows": rows}, indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+        lines.append(f"| {task} | {s['episodes']} | {s['clear_choices']} | {s['named_chosen']} ({share:.0%}; {low:.0%}-{high:.0%}) "
+                     f"| {s['chance']:.0%} | {s['success']} | {s['success_when_named_chosen']} |")
+    if report["via"]:
+        lines += ["", "The stop above a target before the push (the keyframe two before it):", "",
+                  "| task | episodes with a stop | nearest the named target | a clear push after it | the push went for the target of the stop |",
+                  "|---|---|---|---|---|"]
+        for task, s in report["summary"].items():
+            lines.append(f"| {task} | {s['stops']} | {s['stops_above_named']} | {s['pushes_after_stop']} | {s['pushes_to_stop_target']} |")
+    return "\n".join(lines) + "\n"

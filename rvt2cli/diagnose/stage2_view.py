@@ -14,18 +14,16 @@ gather the insertion and the pose before it whatever their index. With `--aim-he
 where a policy trained with `rvt2 train --aim-held` centres it: on the task's aim offset (tasks/*.toml)
 for keyframes that follow a closed gripper.
 
-    python -m benchmarks.stage2_view DEMOS_DIR... [--config rvt2] [--zoom Z] [--aim-held] [--json out.json]
+    rvt2 diagnose stage2-view DEMOS... [--config rvt2] [--zoom Z] [--aim-held] [--json out.json]
 """
 
-import argparse
-import json
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from benchmarks.machine import describe
+from rvt2cli.data.paths import episode_paths
 from rvt2cli.data.reader import read_episode
 from rvt2cli.errors import UserError
 from rvt2cli.model.config import get_config
@@ -86,39 +84,23 @@ def measure(paths: list[Path], half: float, aim_held: bool = False) -> dict:
             for task, by_index in shares.items()}
 
 
-def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("demos", nargs="+", help="annotated demo files or folders")
-    p.add_argument("--config", default="rvt2", help="the model config whose zoom sets stage 2's box (default rvt2)")
-    p.add_argument("--zoom", type=float, help="stage 2 covers 1/ZOOM of the workspace (default: the config's)")
-    p.add_argument("--aim-held", action="store_true", help="centre the box on the task's aim offset once the gripper holds")
-    p.add_argument("--json", help="write the table here too")
-    args = p.parse_args(argv)
-    missing = [d for d in args.demos if not Path(d).exists()]
-    paths = sorted(f for d in args.demos for f in ([Path(d)] if Path(d).is_file() else Path(d).glob("*.mcap")))
-    if missing or not paths:
-        raise SystemExit(f"stage2_view: no such file or folder: {missing[0]}" if missing else
-                         f"stage2_view: no .mcap files in {' '.join(args.demos)}")
-    try:
-        zoom = args.zoom or get_config(args.config).zoom
-        half = Workspace.from_bounds(read_episode(paths[0]).meta.scene_bounds).half_extent / zoom
-        table = measure(paths, half, args.aim_held)
-    except (UserError, ValueError) as error:
-        raise SystemExit(f"stage2_view: {error}") from None
-    if not table:
-        raise SystemExit(f"stage2_view: none of these demos is of a task with a goal object ({', '.join(GOAL_OBJECT)})")
-    centre = "the aim offset once the gripper holds, else the TCP" if args.aim_held else "the TCP"
-    print(f"stage 2 sees +-{half * 1000:.0f} mm around its centre, {centre} (zoom {zoom:g}); {describe()}")
-    print("| task | keyframe | episodes | share of the goal object's surface in view | episodes with none in view |")
-    print("|---|---|---|---|---|")
-    for task, rows in table.items():
+def report(demos, config: str = "rvt2", zoom: float | None = None, aim_held: bool = False) -> dict:
+    """`measure` over annotated demos with the box of `config`'s zoom (or `zoom`) in the demos' workspace."""
+    paths = episode_paths(list(demos))
+    zoom = zoom or get_config(config).zoom
+    half = Workspace.from_bounds(read_episode(paths[0]).meta.scene_bounds).half_extent / zoom
+    tasks = measure(paths, half, aim_held)
+    if not tasks:
+        raise UserError(f"none of these demos is of a task with a goal object ({', '.join(GOAL_OBJECT)}); give demos of one")
+    return {"zoom": zoom, "half_extent_m": half, "aim_held": aim_held, "tasks": tasks}
+
+
+def markdown(report: dict) -> str:
+    centre = "the aim offset once the gripper holds, else the TCP" if report["aim_held"] else "the TCP"
+    lines = [f"stage 2 sees +-{report['half_extent_m'] * 1000:.0f} mm around its centre, {centre} (zoom {report['zoom']:g})", "",
+             "| task | keyframe | episodes | share of the goal object's surface in view | episodes with none in view |",
+             "|---|---|---|---|---|"]
+    for task, rows in report["tasks"].items():
         for index, row in rows.items():
-            print(f"| {task} | {index} | {row['episodes']} | {row['mean_share']:.2f} | {row['episodes_blind']} |")
-    if args.json:
-        Path(args.json).write_text(json.dumps({"machine": describe(), "zoom": zoom, "half_extent_m": half,
-                                               "aim_held": args.aim_held, "tasks": table},
-                                              indent=1))
-
-
-if __name__ == "__main__":
-    main()
+            lines.append(f"| {task} | {index} | {row['episodes']} | {row['mean_share']:.2f} | {row['episodes_blind']} |")
+    return "\n".join(lines) + "\n"
