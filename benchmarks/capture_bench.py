@@ -2,20 +2,20 @@
 render every camera of one or several scenes in one submission and hand the pictures over in CUDA memory.
 
     python -m benchmarks.capture_bench [--task open_drawer] [--captures 48] [--processes 1,8,15]
-                                       [--scenes 1,8] [--variants product,group,group-poses] [--json out.json]
+                                       [--scenes 1,8] [--variants cameras,group] [--json out.json]
 
 Variants (each process builds `scenes` scenes of the task, runs the expert once in each for states, then
 restores those states one after another and captures; only the captures are timed):
-- product: `rvt2cli.record.scene.capture_cameras`, scene by scene (what `rvt2 record` and `rvt2 eval` run);
-- group: one `sapien.render.RenderSystemGroup` over the scenes and one camera group of all their cameras;
-  the scenes' render transforms are updated on the CPU (`scene.update_render`), the pictures taken at once;
-- group-poses: the same, with every render body's pose written to one CUDA buffer that the group turns
-  into render transforms on the GPU (`set_cuda_poses`, `set_gpu_pose_batch_index`), as ManiSkill's GPU
-  simulation does.
-Every variant's pictures are compared with `capture_cameras`' at the same states (colour levels, depth in
-mm, segmentation ids), so a faster path that draws something else is seen. Captures per second count
-four-camera captures: with `scenes` K, one round of the group is K captures. The group variants need
-NVIDIA's Vulkan driver and CUDA; elsewhere they report why they did not run.
+- cameras: `rvt2cli.record.capture.capture_camera_by_camera`, ManiSkill's way, scene by scene;
+- group: `rvt2cli.record.capture.CameraGroup` over the process's scenes: one submission for all their
+  cameras, the render transforms computed on the GPU from one CUDA buffer of poses (with one scene, what
+  `capture_cameras` does where SAPIEN renders through CUDA).
+Every variant's pictures are compared with camera-by-camera captures at the same states in scenes of their
+own (colour levels, depth in mm), so a faster path that draws something else is seen. Captures per second
+count four-camera captures: with `scenes` K, one round of the group is K captures. The group needs NVIDIA's
+Vulkan driver and CUDA; elsewhere it reports why it did not run. (Updating the scenes' transforms on the
+CPU and only taking the group's pictures draws stale transforms: once in a group, a scene takes them from
+the GPU.)
 """
 
 import argparse
@@ -40,68 +40,8 @@ def episode_states(env, task, seed: int, every: int = 3, most: int = 48) -> list
     return [frame.sim for frame in run.frames[::every]][:most]
 
 
-class GroupCapture:
-    """Every rvt2 camera of `envs` in one SAPIEN camera group: one render submission for all of them."""
-
-    def __init__(self, envs, gpu_poses: bool):
-        import sapien
-        import torch
-
-        self.envs, self.gpu_poses = envs, gpu_poses
-        systems = [env.unwrapped.scene.sub_scenes[0].render_system for env in envs]
-        self.bodies = []
-        if gpu_poses:
-            for system in systems:
-                for body in system.render_bodies:
-                    for shape in body.render_shapes:
-                        shape.set_gpu_pose_batch_index(len(self.bodies))
-                    self.bodies.append(body)
-        self.cameras, self.sensors = [], []
-        for env in envs:
-            for name in env.rvt2_cameras:
-                sensor = env.unwrapped.scene.sensors[name]
-                camera = sensor.camera._render_cameras[0]
-                if gpu_poses and camera.entity is not None:
-                    hosts = [i for i, body in enumerate(self.bodies) if body.entity is camera.entity
-                             and body.entity.scene is camera.entity.scene]
-                    if hosts:
-                        camera.set_gpu_pose_batch_index(hosts[0])
-                self.cameras.append(camera)
-                self.sensors.append((env, name, sensor))
-        self.group = sapien.render.RenderSystemGroup(systems)
-        if gpu_poses:
-            self.poses = torch.zeros((len(self.bodies), 7), dtype=torch.float32, device="cuda")
-            self.group.set_cuda_poses(sapien.pysapien.CudaArray(self.poses))
-        self.camera_group = self.group.create_camera_group(self.cameras, list(TEXTURES))
-
-    def capture(self) -> list[dict]:
-        """Each env's CameraFrames, as `capture_cameras` returns them."""
-        import torch
-
-        from rvt2cli.record.scene import camera_frame
-
-        for env in self.envs:
-            u = env.unwrapped
-            for obj in u._hidden_objects:
-                obj.hide_visual()
-            u.scene.update_render(update_sensors=True, update_human_render_cameras=False)
-        if self.gpu_poses:
-            rows = np.array([[*b.entity_pose.p, *b.entity_pose.q] for b in self.bodies], dtype=np.float32)
-            self.poses.copy_(torch.from_numpy(rows))
-            self.group.update_render()
-        self.camera_group.take_picture()
-        pictures = {name: self.camera_group.get_picture_cuda(name).torch() for name in TEXTURES}
-        colour = pictures["Color"][..., :3].cpu().numpy()
-        position = pictures["Position"][..., :3].cpu().numpy()
-        ids = pictures["Segmentation"][..., 1].to(torch.int32).cpu().numpy()
-        frames = [{} for _ in self.envs]
-        for i, (env, name, sensor) in enumerate(self.sensors):
-            frames[self.envs.index(env)][name] = camera_frame(colour[i], position[i], ids[i], sensor.get_params())
-        return frames
-
-
 def compare(reference: dict, frames: dict) -> dict:
-    """How far one capture's pictures are from `capture_cameras`' at the same state, over its cameras."""
+    """How far one capture's pictures are from camera-by-camera ones at the same state, over its cameras."""
     worst = {"colour_levels_max": 0, "colour_pixels_off": 0.0, "depth_mm_max": 0.0, "depth_pixels_over_1mm": 0.0}
     for name, ref in reference.items():
         got = frames[name]
@@ -118,7 +58,8 @@ def compare(reference: dict, frames: dict) -> dict:
 
 def measure(variant: str, task_name: str, scenes: int, captures: int, process: int, barrier=None, check: bool = False) -> dict:
     """One process's part: build `scenes` scenes, capture `captures` times (rounds of `scenes`), timed after the barrier."""
-    from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
+    from rvt2cli.record.capture import CameraGroup, capture_camera_by_camera
+    from rvt2cli.record.scene import make_env, restore_sim_state
     from rvt2cli.tasks import get_task
 
     task = get_task(task_name)
@@ -128,12 +69,11 @@ def measure(variant: str, task_name: str, scenes: int, captures: int, process: i
         seeds = [1000 * process + i for i in range(scenes)]
         states = [episode_states(env, task, seed) for seed, env in zip(seeds, envs)]
         rounds = max(1, captures // scenes)
-        if variant == "product":
+        if variant == "cameras":
             def capture_round():
-                return [capture_cameras(env) for env in envs]
+                return [capture_camera_by_camera(env) for env in envs]
         else:
-            grouped = GroupCapture(envs, gpu_poses=variant == "group-poses")
-            capture_round = grouped.capture
+            capture_round = CameraGroup(envs).capture
 
         def restore(k):
             for env, own in zip(envs, states):
@@ -143,7 +83,7 @@ def measure(variant: str, task_name: str, scenes: int, captures: int, process: i
             restore(k)
             capture_round()
         if check:
-            out["versus_product"] = check_against_product(task, seeds, envs, states, capture_round)
+            out["versus_cameras"] = check_against_cameras(task, seeds, envs, states, capture_round)
         if barrier is not None:
             barrier.wait()
         start, spent = time.perf_counter(), 0.0
@@ -163,9 +103,10 @@ def measure(variant: str, task_name: str, scenes: int, captures: int, process: i
     return out
 
 
-def check_against_product(task, seeds, envs, states, capture_round, samples: int = 6) -> dict:
-    """The variant's pictures against `capture_cameras`' in scenes of their own, rebuilt from the same seeds."""
-    from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state, set_variation
+def check_against_cameras(task, seeds, envs, states, capture_round, samples: int = 6) -> dict:
+    """The variant's pictures against camera-by-camera ones in scenes of their own, rebuilt from the same seeds."""
+    from rvt2cli.record.capture import capture_camera_by_camera
+    from rvt2cli.record.scene import make_env, restore_sim_state, set_variation
     from rvt2cli.tasks import episode_variation
 
     worst: dict = {}
@@ -179,10 +120,8 @@ def check_against_product(task, seeds, envs, states, capture_round, samples: int
         for env, ref, own in zip(envs, references, states):
             restore_sim_state(env, own[k])
             restore_sim_state(ref, own[k])
-        got = capture_round()
-        got = got if isinstance(got, list) else [got]
-        for ref, frames in zip(references, got):
-            for key, value in compare(capture_cameras(ref), frames).items():
+        for ref, frames in zip(references, capture_round()):
+            for key, value in compare(capture_camera_by_camera(ref), frames).items():
                 worst[key] = max(worst.get(key, 0), value)
     for ref in references:
         ref.close()
@@ -208,7 +147,7 @@ def concurrent(variant: str, task: str, scenes: int, captures: int, processes: i
     total = sum(p["captures"] for p in parts)
     return {"variant": variant, "scenes": scenes, "processes": processes, "captures": total, "seconds": span,
             "captures_per_s": total / span, "ms_per_capture_in_process": 1000 * np.mean([p["capture_s"] / p["captures"] for p in parts]),
-            "versus_product": parts[0].get("versus_product")}
+            "versus_cameras": parts[0].get("versus_cameras")}
 
 
 def main() -> None:
@@ -217,7 +156,7 @@ def main() -> None:
     parser.add_argument("--captures", type=int, default=48, help="four-camera captures per process")
     parser.add_argument("--processes", default="1,8,15")
     parser.add_argument("--scenes", default="1,8", help="scenes per process (for the group variants)")
-    parser.add_argument("--variants", default="product,group,group-poses")
+    parser.add_argument("--variants", default="cameras,group")
     parser.add_argument("--json")
     args = parser.parse_args()
     from benchmarks.machine import describe
@@ -226,17 +165,17 @@ def main() -> None:
     driver = use_vulkan_driver().name  # chosen once, inherited by the processes
     results = {"machine": describe(), "renderer": driver, "task": args.task, "runs": []}
     print(f"{args.task}, renderer {driver}, {args.captures} captures per process")
-    print("| variant | scenes/process | processes | captures/s | ms per capture in a process | vs capture_cameras |")
+    print("| variant | scenes/process | processes | captures/s | ms per capture in a process | vs camera by camera |")
     print("|---|---|---|---|---|---|")
     for variant in args.variants.split(","):
-        for scenes in [int(s) for s in args.scenes.split(",")] if variant != "product" else [1]:
+        for scenes in [int(s) for s in args.scenes.split(",")] if variant != "cameras" else [1]:
             for processes in [int(p) for p in args.processes.split(",")]:
                 r = concurrent(variant, args.task, scenes, args.captures, processes)
                 results["runs"].append(r)
                 if "error" in r:
                     print(f"| {variant} | {scenes} | {processes} | did not run: {r['error'][:120]} | | |", flush=True)
                     break
-                check = r["versus_product"]
+                check = r["versus_cameras"]
                 versus = (f"colour <= {check['colour_levels_max']} levels ({check['colour_pixels_off']:.2%} of pixels > 1), "
                           f"depth <= {check['depth_mm_max']:.2f} mm ({check['depth_pixels_over_1mm']:.2%} > 1 mm)"
                           if check else "")

@@ -7,33 +7,31 @@ again through `evaluate` (what `rvt2 eval` runs: the scene, the cameras, the clo
 its planner), in one process, for the first --episodes seeds from --seed of each task they hold. A
 policy on a GPU adds its prediction to each keyframe; on a GPU machine the rest is what the CPU cores
 pay for, so it sets how many episodes a minute a machine's cores evaluate. Prints seconds per episode and
-per keyframe, by task, and the share of the time in each part of an episode (from cProfile).
+per keyframe, by task, and the share of the time in each part of an episode (`benchmarks.profile_parts`).
 """
 
 import argparse
-import cProfile
 import gzip
 import json
-import pstats
 import tempfile
 import time
 from pathlib import Path
 
 from benchmarks.machine import describe
-from benchmarks.profile_parts import part_seconds
+from benchmarks.profile_parts import PartTimer
 from rvt2cli.eval.journal import Journal, read_journal
 from rvt2cli.eval.options import EvalOptions
 from rvt2cli.eval.runner import evaluate
 
-# The parts of an episode, each the cumulative time of the functions named (file suffix, function).
+# The parts of an episode: the functions that do them, where `evaluate` looks them up.
 PARTS = {
-    "render the cameras": [("record/scene.py", "capture_cameras")],
-    "fuse the clouds": [("data/fusion.py", "fuse")],
-    "clear the planner's cloud near the robot": [("eval/executor.py", "clear_cloud")],
-    "give the planner its cloud": [("mplib/planner.py", "update_point_cloud")],
-    "plan (screw, RRT, timing)": [("mplib/planner.py", "plan_screw"), ("mplib/planner.py", "plan_qpos_to_pose")],
-    "simulate (control steps)": [("eval/executor.py", "_step")],
-    "reset the scene": [("mani_skill/envs/sapien_env.py", "reset")],
+    "render the cameras": [("rvt2cli.eval.rollout", "capture_cameras")],
+    "fuse the clouds": [("rvt2cli.eval.rollout", "fuse")],
+    "clear the planner's cloud near the robot": [("rvt2cli.eval.executor", "Executor.clear_cloud")],
+    "give the planner its cloud": [("mplib.planner", "Planner.update_point_cloud")],
+    "plan (screw, RRT, timing)": [("mplib.planner", "Planner.plan_screw"), ("mplib.planner", "Planner.plan_qpos_to_pose")],
+    "simulate (control steps)": [("rvt2cli.eval.executor", "Executor._step")],
+    "reset the scene": [("mani_skill.envs.sapien_env", "BaseEnv.reset")],
 }
 
 
@@ -73,11 +71,11 @@ def main() -> None:
                              "control_steps": outcome.control_steps, "seconds": now - last[0]})
             last[0] = now
 
-        profile = cProfile.Profile()
         start = time.perf_counter()
-        profile.runcall(evaluate, opts, on_outcome=timed, on_start=lambda n: last.__setitem__(0, time.perf_counter()))
+        with PartTimer(PARTS) as timer:
+            evaluate(opts, on_outcome=timed, on_start=lambda n: last.__setitem__(0, time.perf_counter()))
         total = time.perf_counter() - start
-    parts = part_seconds(pstats.Stats(profile), PARTS)
+    parts = timer.seconds
     spent = sum(e["seconds"] for e in episodes)
     print(f"{len(episodes)} episodes in {spent:.1f} s ({total:.1f} s with start-up), one process")
     print("| task | episodes | successes | s per episode | s per keyframe |")

@@ -8,21 +8,20 @@ Expert success runs each task's expert on seeds FIRST..FIRST+N-1 without renderi
 variation `rvt2 record` gives it (`--first-seed 10000`: the seeds `rvt2 eval` uses; `--episodes 0` skips
 the throughput part). Throughput records successful episodes with the default camera rig, as
 `rvt2 record` does: of insert_peg, or with --task-set of every task of the set (the time for all).
-`--profile N` records N demos of each task in one process under cProfile, with `rvt2 record`'s own
-function, and prints where a demo's core-seconds go (planning, physics, scene builds, state restores,
+`--profile N` records N demos of each task in one process, with `rvt2 record`'s own function, and
+prints where a demo's core-seconds go (planning, physics, scene builds, state restores,
 camera captures, keyframes, MCAP writing).
 """
 
 import argparse
-import cProfile
 import json
-import pstats
+import os
 import tempfile
 import time
 from pathlib import Path
 
 from benchmarks.machine import describe
-from benchmarks.profile_parts import part_totals
+from benchmarks.profile_parts import PartTimer
 from rvt2cli.record.expert import run_expert
 from rvt2cli.record.recorder import RecordOptions, record_episode, record_tasks
 from rvt2cli.record.scene import make_env
@@ -69,26 +68,28 @@ def record_throughput(episodes: int, workers: int, tasks=("insert_peg",)) -> dic
                          for s in summaries}}
 
 
-# The steps of recording one demo, each the cumulative time of the functions named (file suffix, function).
+# The steps of recording one demo: the functions that do them, where rvt2 record looks them up.
 RECORD_PARTS = {
-    "reset the scene (rebuild it)": [("mani_skill/envs/sapien_env.py", "reset")],
-    "build the expert's planner": [("motionplanning/panda/motionplanner.py", "__init__")],
-    "plan the expert's motions (mplib)": [("mplib/planner.py", "plan_screw"), ("mplib/planner.py", "plan_qpos_to_pose"),
-                                          ("mplib/planner.py", "plan_qpos_to_qpos")],
-    "simulate (control steps)": [("mani_skill/envs/sapien_env.py", "step")],
-    "read each frame (joints, contacts, simulator state)": [("record/expert.py", "_record")],
-    "find the keyframes": [("keyframes/rule.py", "find_keyframes")],
-    "restore the observed frames' states": [("record/scene.py", "restore_sim_state")],
-    "capture the cameras": [("record/scene.py", "capture_cameras")],
-    "write the MCAP file (encode, compress)": [("data/writer.py", "write_instruction"), ("data/writer.py", "write_frame"),
-                                               ("data/writer.py", "write_observation"), ("data/writer.py", "finish")],
+    "reset the scene (rebuild it)": [("mani_skill.envs.sapien_env", "BaseEnv.reset")],
+    "build the expert's planner": [("mani_skill.examples.motionplanning.panda.motionplanner", "PandaArmMotionPlanningSolver.__init__")],
+    "plan the expert's motions (mplib)": [("mplib.planner", "Planner.plan_screw"), ("mplib.planner", "Planner.plan_qpos_to_pose"),
+                                          ("mplib.planner", "Planner.plan_qpos_to_qpos")],
+    "simulate (control steps)": [("mani_skill.envs.sapien_env", "BaseEnv.step")],
+    "read each frame (joints, contacts, simulator state)": [("rvt2cli.record.expert", "RecordingWrapper._record")],
+    "find the keyframes": [("rvt2cli.record.recorder", "find_keyframes")],
+    "restore the observed frames' states": [("rvt2cli.record.recorder", "restore_sim_state")],
+    "capture the cameras": [("rvt2cli.record.recorder", "capture_cameras")],
+    "write the MCAP file (encode, compress)": [("rvt2cli.data.writer", "EpisodeWriter.write_instruction"),
+                                               ("rvt2cli.data.writer", "EpisodeWriter.write_frame"),
+                                               ("rvt2cli.data.writer", "EpisodeWriter.write_observation"),
+                                               ("rvt2cli.data.writer", "EpisodeWriter.finish")],
 }
 
 
 def record_profile(names, demos: int) -> dict:
     """`demos` successful demos of each task, recorded one after another in this process by `rvt2 record`'s
-    own `record_episode`, under cProfile: each step's core-seconds (`RECORD_PARTS`)."""
-    profile, results = cProfile.Profile(), []
+    own `record_episode`, each step timed (`RECORD_PARTS`)."""
+    results, timer = [], PartTimer(RECORD_PARTS)
     with tempfile.TemporaryDirectory() as out:
         for name in names:
             task = all_tasks()[name]
@@ -96,24 +97,23 @@ def record_profile(names, demos: int) -> dict:
             successes, seed = 0, 0
             while successes < demos and seed < 10 * demos + 10:
                 start = time.perf_counter()
-                result = profile.runcall(record_episode, env, task, seed, Path(out), RecordOptions())
+                with timer:   # the episode's steps only, not the scene's first build in make_env
+                    result = record_episode(env, task, seed, Path(out), RecordOptions())
                 results.append({"task": name, "seed": seed, "status": result.status, "frames": result.frames,
                                 "seconds": time.perf_counter() - start})
                 successes += result.success
                 seed += 1
             env.close()
-    parts = part_totals(pstats.Stats(profile), RECORD_PARTS)
-    spent = sum(r["seconds"] for r in results)
-    captures = parts["capture the cameras"][1]
     return {"tasks": list(names), "demos": sum(r["status"] == "success" for r in results), "attempts": len(results),
-            "seconds": spent, "captures": captures, "parts_s": {k: s for k, (s, _) in parts.items()},
-            "part_calls": {k: c for k, (_, c) in parts.items()}, "episodes": results}
+            "seconds": sum(r["seconds"] for r in results), "captures": timer.calls["capture the cameras"],
+            "capture_path": os.environ.get("RVT2_CAPTURE", "auto"), "parts_s": timer.seconds, "part_calls": timer.calls,
+            "episodes": results}
 
 
 def print_profile(p: dict) -> None:
     demos = max(1, p["demos"])
     print(f"\n{p['demos']} demos ({p['attempts']} attempts) of {len(p['tasks'])} tasks in {p['seconds']:.1f} s, one process "
-          f"(cProfile): {p['seconds'] / demos:.2f} s per demo, {p['captures']} camera captures "
+          f"(capture path {p['capture_path']}): {p['seconds'] / demos:.2f} s per demo, {p['captures']} camera captures "
           f"({p['captures'] / demos:.1f} per demo)")
     print("| step of recording a demo | s | share | s per demo |\n|---|---|---|---|")
     for name, seconds in p["parts_s"].items():
@@ -132,7 +132,7 @@ def main() -> None:
     parser.add_argument("--task-set", help="the tasks of this named set (e.g. rlbench18), also for the throughput")
     parser.add_argument("--json", help="write results here")
     parser.add_argument("--profile", type=int, default=0, metavar="N",
-                        help="record N demos of each task in one process under cProfile: where a demo's time goes")
+                        help="record N demos of each task in one process: where a demo's time goes")
     parser.add_argument("--quick", action="store_true", help="2 seeds of 2 tasks, 1 episode: checks that it runs")
     args = parser.parse_args()
     names = args.tasks.split(",") if args.tasks else tasks_of_set(args.task_set) if args.task_set else list(all_tasks())

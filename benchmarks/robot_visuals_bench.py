@@ -14,7 +14,8 @@ import time
 import numpy as np
 
 from benchmarks.machine import describe
-from rvt2cli.record.scene import capture_cameras, make_env
+from rvt2cli.record.capture import capture_cameras
+from rvt2cli.record.scene import make_env
 from rvt2cli.runtime import use_vulkan_driver
 from rvt2cli.tasks import get_task
 

@@ -68,7 +68,8 @@ def save_picture(task, path: Path, seed: int):
     """Save the front camera's picture of the task's scene; returns the task's environment class."""
     from PIL import Image
 
-    from rvt2cli.record.scene import capture_cameras, make_env, set_variation
+    from rvt2cli.record.capture import capture_cameras
+    from rvt2cli.record.scene import make_env, set_variation
 
     env = make_env(task, cameras=("front",), image_size=IMAGE_SIZE)
     try:

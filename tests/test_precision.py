@@ -19,7 +19,8 @@ from rvt2cli.eval.sources import OracleSource
 from rvt2cli.eval.taxonomy import REASONS, STALL_REPEATS, count_reasons, failure_reason, stalled
 from rvt2cli.keyframes.extract import label_keyframes
 from rvt2cli.record.expert import run_expert
-from rvt2cli.record.scene import capture_cameras, held_objects, make_env, segmentation_ids
+from rvt2cli.record.capture import capture_cameras
+from rvt2cli.record.scene import held_objects, make_env, segmentation_ids
 from rvt2cli.robot import RobotFacts
 from rvt2cli.runtime import seed_everything
 from rvt2cli.tasks import get_task

@@ -160,7 +160,8 @@ def test_pick_cube_expert_shows_the_goal_where_maniskills_hides_it():
     from mani_skill.utils.structs import Actor
 
     from rvt2cli.eval.sources import expert_keyframes
-    from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
+    from rvt2cli.record.capture import capture_cameras
+    from rvt2cli.record.scene import make_env, restore_sim_state
 
     task = get_task("pick_cube")
     assert task.expert == "rvt2cli.record.experts:pick_cube"
@@ -348,7 +349,7 @@ def test_a_lavapipe_installed_elsewhere_renders(tmp_path):
     manifest = tmp_path / "lvp_icd.json"
     relocated["ICD"]["library_path"] = str(tmp_path / "lib" / "libvulkan_lvp.so")
     manifest.write_text(json.dumps(relocated))
-    code = ("from rvt2cli.record.scene import make_env, capture_cameras\n"
+    code = ("from rvt2cli.record.scene import make_env\nfrom rvt2cli.record.capture import capture_cameras\n"
             "from rvt2cli.runtime import use_vulkan_driver\n"
             "from rvt2cli.tasks import get_task\n"
             "driver = use_vulkan_driver()\n"
@@ -385,6 +386,7 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
     the arm's outline."""
     import warnings
 
+    import rvt2cli.record.capture as capture
     import rvt2cli.record.scene as scene
     from rvt2cli.record.robot_visuals import mesh_parts
 
@@ -393,7 +395,7 @@ def test_the_cameras_draw_a_lighter_panda_with_the_same_outline():
     def views(env):
         env.reset(seed=0)
         segmentation = {}
-        frames = scene.capture_cameras(env, segmentation)
+        frames = capture.capture_cameras(env, segmentation)
         triangles = sum(len(part.triangles) for *_, part in mesh_parts(env.unwrapped.agent.robot))
         env.close()
         return frames, segmentation, triangles

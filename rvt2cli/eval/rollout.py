@@ -21,7 +21,8 @@ from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.eval.executor import Executor, Reach, StepBudgetExhausted
 from rvt2cli.eval.options import MAX_REPLANS
 from rvt2cli.eval.search import InsertionSearch
-from rvt2cli.record.scene import capture_cameras, held_objects, segmentation_ids, set_variation
+from rvt2cli.record.capture import capture_cameras, video_frame
+from rvt2cli.record.scene import held_objects, segmentation_ids, set_variation
 from rvt2cli.runtime import seed_everything
 from rvt2cli.tasks import Task
 
@@ -143,7 +144,7 @@ def run_episode(env, task: Task, seed: int, source: KeyframeSource, instruction:
     if video_every:
         def grab():
             if executor.steps % video_every == 0:
-                outcome.video.append(np.asarray(env.render()[0].cpu().numpy(), dtype=np.uint8))
+                outcome.video.append(video_frame(env))
         executor.on_step = grab
         grab()
     retry, stuck = 0, False

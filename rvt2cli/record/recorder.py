@@ -22,7 +22,8 @@ from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.errors import UserError
 from rvt2cli.record.expert import ExpertRun, load_expert, run_expert
 from rvt2cli.record.robot_visuals import DESCRIPTION as ROBOT_VISUALS
-from rvt2cli.record.scene import capture_cameras, make_env, restore_sim_state
+from rvt2cli.record.capture import capture_cameras, capture_path
+from rvt2cli.record.scene import make_env, restore_sim_state
 from rvt2cli.robot import RobotFacts
 from rvt2cli.runtime import use_vulkan_driver, worker_pool
 from rvt2cli.tasks import Task, episode_variation, get_task
@@ -104,6 +105,7 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
             voxel_size=options.voxel_size, extra={"image_size": int(options.image_size or task.image_size), "status": run.status,
                                                   "robot": robot.to_json(), "variation": run.variation,
                                                   "renderer": use_vulkan_driver().name,  # the Vulkan driver that drew the cameras
+                                                  "capture": capture_path(env),   # a camera group or camera by camera
                                                   "robot_visuals": ROBOT_VISUALS},
         )
         return writer.finish(meta)

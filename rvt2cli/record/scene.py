@@ -1,7 +1,7 @@
 """A task's ManiSkill scene with rvt2's camera rig, and what we read out of it each frame.
 
 The environment steps with `obs_mode="none"` (no rendering while the expert runs); cameras are
-rendered only on request with `capture_cameras`, typically after `env.set_state_dict(...)`.
+rendered only on request with `rvt2cli.record.capture.capture_cameras`, typically after `env.set_state_dict(...)`.
 """
 
 import gc
@@ -9,9 +9,7 @@ import logging
 import re
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from rvt2cli.data import CameraFrame
 from rvt2cli.record.cameras import camera_configs
 from rvt2cli.record.robot_visuals import lighten_robot_visuals
 from rvt2cli.runtime import use_vulkan_driver
@@ -206,42 +204,6 @@ def restore_sim_state(env, state: dict) -> None:
 
     env.unwrapped.set_state_dict({group: {name: torch.tensor([values], dtype=torch.float32) for name, values in items.items()}
                                   for group, items in state.items()})
-
-
-def capture_cameras(env, segmentation: dict | None = None) -> dict[str, CameraFrame]:
-    """Render every rvt2 camera at the current simulator state (hidden objects stay hidden).
-    If a dict is given as `segmentation`, each camera's per-pixel actor/link ids are put into it."""
-    u = env.unwrapped
-    for obj in u._hidden_objects:
-        obj.hide_visual()
-    u.scene.update_render(update_sensors=True, update_human_render_cameras=False)
-    frames = {}
-    for name in env.rvt2_cameras:
-        sensor = u.scene.sensors[name]
-        sensor.capture()
-        tex = sensor.get_obs(rgb=True, depth=False, position=True, segmentation=True, apply_texture_transforms=False)
-        ids = tex["Segmentation"][0, ..., 1].cpu().numpy()  # actor/link-level ids, 0 = nothing hit
-        if segmentation is not None:
-            segmentation[name] = ids
-        frames[name] = camera_frame(tex["Color"][0, ..., :3].cpu().numpy(), tex["Position"][0, ..., :3].cpu().numpy(),
-                                    ids, sensor.get_params())
-    return frames
-
-
-def camera_frame(color: np.ndarray, position: np.ndarray, ids: np.ndarray, params: dict) -> CameraFrame:
-    """One camera's picture as rvt2 stores it, from SAPIEN's textures (colour in [0, 1], positions in the
-    OpenGL camera frame, which looks along -z, and segmentation ids, 0 where nothing was hit) and the
-    camera's ManiSkill parameters."""
-    depth = np.where(ids > 0, -position[..., 2], 0.0).astype(np.float32)
-    world2cam = params["extrinsic_cv"][0].cpu().numpy().astype(np.float64)
-    rot_c2w = world2cam[:, :3].T
-    cam2world = np.concatenate([-rot_c2w @ world2cam[:, 3], Rotation.from_matrix(rot_c2w).as_quat()])
-    return CameraFrame(
-        rgb=np.clip(np.rint(color * 255.0), 0, 255).astype(np.uint8),
-        depth=depth,
-        intrinsic=params["intrinsic_cv"][0].cpu().numpy().astype(np.float64),
-        cam2world=cam2world,
-    )
 
 
 def segmentation_ids(env, body_names: set[str], include_robot: bool) -> np.ndarray:

@@ -15,6 +15,6 @@ fi
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 -c "import torch, warp, bitsandbytes; print('torch', torch.__version__, 'warp', warp.__version__, 'bitsandbytes', bitsandbytes.__version__)" | tee -a "$OUT/gpu.txt"
-python3 -m pytest -q -p no:cacheprovider tests/test_render.py tests/test_model.py 2>&1 | tail -3 | tee "$OUT/tests.txt"
+python3 -m pytest -q -p no:cacheprovider tests/test_render.py tests/test_model.py tests/test_capture.py 2>&1 | tail -3 | tee "$OUT/tests.txt"
 python3 -m benchmarks.render_bench --device cuda --json "$OUT/render.json" 2>&1 | tee "$OUT/render.txt"
 python3 -m benchmarks.policy_bench --device cuda --json "$OUT/policy.json" "$@" 2>&1 | tee "$OUT/policy.txt"
