@@ -108,7 +108,7 @@ def options_from(args) -> "TrainOptions":  # noqa: F821 - imported lazily
 
     given = {f.name: getattr(args, f.name) for f in fields(TrainOptions) if hasattr(args, f.name)}
     if given.get("resume"):
-        from rvt2cli.train.trainer import stored_options
+        from rvt2cli.train.run_folder import stored_options
 
         stored = stored_options(Path(args.out))
         if stored is not None:  # a time limit belongs to the command that gave it, not to the run
