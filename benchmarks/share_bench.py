@@ -21,7 +21,7 @@ import torch
 import torch.distributed as dist
 
 from rvt2cli.model.language import InstructionCache
-from rvt2cli.train.batches import PackedSamples
+from rvt2cli.train.packed import PackedSamples
 from rvt2cli.train.samples import SampleSet
 from rvt2cli.train.data_sharing import pickled_part, share_data
 from rvt2cli.train.training_data import TrainingData

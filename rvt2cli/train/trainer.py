@@ -25,6 +25,7 @@ from rvt2cli.train.metrics import headline, precision_report, score_predictions
 from rvt2cli.train.options import TrainOptions
 from rvt2cli.train.run_folder import RunLog, write_run_json
 from rvt2cli.train.step import StepResult
+from rvt2cli.train.training_data import TrainingData
 from rvt2cli.train.training_setup import setup_training
 
 __all__ = ["TrainOptions", "TrainResult", "train"]
@@ -73,9 +74,10 @@ def describe_terms(counts: Counter) -> str:
     return ", ".join(f"{name} in {n} step{'s' if n != 1 else ''}" for name, n in ordered)
 
 
-def train(opts: TrainOptions, say=print) -> TrainResult:
+def train(opts: TrainOptions, say=print, data: TrainingData | None = None) -> TrainResult:
+    """`data`: the samples, already read (`training_setup.setup_training`); None: read them."""
     start_time = time.perf_counter()
-    setup = setup_training(opts, say)
+    setup = setup_training(opts, say, data=data)
     opts, rank, world, cfg = setup.opts, setup.rank, setup.world, setup.cfg
     data, policy, state, train_step, batches = setup.data, setup.policy, setup.state, setup.train_step, setup.batches
     amp, total_batch, run_dir = setup.amp, setup.total_batch, Path(opts.out)
@@ -126,13 +128,17 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
 
     policy.train()
     try:
+        batch = next(batches) if state.step < opts.steps else None
         while state.step < opts.steps:
-            batch = next(batches)
             lr_now = state.schedule.get_last_lr()[0]
             step_result = train_step(batch)
             state.step += 1
             pending.append((state.step, step_result, lr_now))
             step = state.step
+            # the next batch, made while the GPU runs this step (before the read-back below waits for it); a
+            # checkpoint of this step keeps the sampling state from before its draws
+            sampling_state = state.generator.get_state()
+            batch = next(batches) if step < opts.steps else None
             validate = data.packed_val is not None and (step % opts.val_every == 0 or step == opts.steps)
             save = step % opts.save_every == 0 or step == opts.steps
             if step % opts.log_every == 0 or validate or save or step == opts.steps:
@@ -152,7 +158,7 @@ def train(opts: TrainOptions, say=print) -> TrainResult:
                 if step == opts.steps:
                     write_run_json(run_dir, {"validation": report})
             if save:
-                checkpoint_state = state.save(world)  # every rank takes part (gathers the generators)
+                checkpoint_state = state.save(world, sampling_state)  # every rank takes part (gathers the generators)
                 if rank == 0:
                     save_checkpoint(run_dir, step, policy, cfg, info, data.instructions.as_dict(), checkpoint_state)
             if result.out_of_time:

@@ -4,7 +4,7 @@ embedded, and packed (rvt2cli.train.batches). `rvt2cli.train.data_sharing` hands
 of a several-GPU run.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -15,9 +15,11 @@ from rvt2cli.model.config import ModelConfig
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.runtime import usable_cores
 from rvt2cli.tasks import aim_offsets, tasks_of_set
-from rvt2cli.train.batches import PackedSamples, TaskSampler, pack
+from rvt2cli.train.batches import TaskSampler
 from rvt2cli.train.checkpoint import Checkpoint
+from rvt2cli.train.clouds import clouds_bytes, clouds_on_host
 from rvt2cli.train.options import TrainOptions
+from rvt2cli.train.packed import PackedSamples, pack
 from rvt2cli.train.sample_cache import is_sample_cache, load_sample_cache
 from rvt2cli.train.samples import SampleSet, load_samples, phrasing_table, select_samples, trained_instructions
 
@@ -65,8 +67,8 @@ def split_episodes(samples, val_episodes: int, selected: list[int] | None = None
 
 @dataclass
 class TrainingData:
-    samples: SampleSet
-    selected: list[int]
+    samples: SampleSet          # tables and per-sample columns; its clouds are dropped once packed
+    selected: list[int]         # the samples trained or validated on (indices into `samples`)
     packed: PackedSamples
     packed_val: PackedSamples | None
     instructions: InstructionCache
@@ -106,17 +108,25 @@ def read_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         raise UserError(f"--aim-held: none of the tasks ({', '.join(samples.tasks)}) declares an aim_offset in its "
                         "tasks/*.toml; add one (m, in the TCP frame) or leave the flag out")
     weights = task_weight_array(opts.task_weights, samples.tasks)
-    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims, phrasings=phrasings)
-    packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims) if val_idx else None
+    nbytes = clouds_bytes(len(train_idx) + len(val_idx), opts.max_points)
+    on_host = clouds_on_host(opts.samples_on, nbytes, device)
+    packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims, phrasings=phrasings,
+                  clouds_on_host=on_host)
+    packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims,
+                      clouds_on_host=on_host) if val_idx else None
     used_episodes = len({samples.episode_index[i] for i in selected})
     say(f"data: {len(selected)} samples from {used_episodes} episodes of {len(samples.tasks)} task(s) "
         f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
         + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
-        + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else ""))
+        + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else "")
+        + f"; clouds {f'{nbytes / 2**30:.1f} GiB' if nbytes >= 2**30 else f'{nbytes / 2**20:.0f} MiB'} on the "
+        + ("host" if on_host else "GPU" if device.type == "cuda" else "CPU"))
     if weights is not None:
         shares = TaskSampler(packed.task, task_weights=weights).shares()
         say("task shares of the draws (--task-weights): "
             + ", ".join(f"{samples.tasks[t]} {share:.0%}" for t, share in zip(np.unique(packed.task), shares)))
+    # the fused clouds as read are packed now: only the packed ones are trained on (rvt2-18: tens of GiB of host memory)
+    samples = replace(samples, xyz=[], rgb=[])
     return TrainingData(samples, selected, packed, packed_val, cache, aims, weights)
 
 

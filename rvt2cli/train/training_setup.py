@@ -80,8 +80,10 @@ def data_parallel(policy: RVT2Policy, device: torch.device, split_graphs: bool =
     return torch.nn.parallel.DistributedDataParallel(policy, device_ids=[device.index] if device.type == "cuda" else None)
 
 
-def setup_training(opts: TrainOptions, say=print, ddp_graph_split: bool = False) -> TrainingSetup:
-    """`ddp_graph_split`: compile under DDP as torch does by default (see `data_parallel`); only to study it."""
+def setup_training(opts: TrainOptions, say=print, ddp_graph_split: bool = False, data: TrainingData | None = None
+                   ) -> TrainingSetup:
+    """`ddp_graph_split`: compile under DDP as torch does by default (see `data_parallel`); only to study it.
+    `data`: the samples, already read (a benchmark trains on one read several times); None: read them."""
     rank, world = init_distributed()
     say = say if rank == 0 else (lambda *_: None)
     device = pick_device(opts.device)
@@ -94,13 +96,16 @@ def setup_training(opts: TrainOptions, say=print, ddp_graph_split: bool = False)
     opts, resume = resolve_options(opts)
     if resume is not None:  # its inference settings too: a run begun before a config's default changed keeps its own
         cfg = resume.config
+    if opts.micro_batch is not None and opts.batch_size % opts.micro_batch:
+        raise UserError(f"--micro-batch {opts.micro_batch} does not divide --batch-size {opts.batch_size}; "
+                        "give a divisor (every part of a batch is the same size, compiled once)")
     total_batch = opts.batch_size * world
     lr = opts.lr if opts.lr is not None else 1.25e-5 * total_batch
     warmup = max(1, min(opts.warmup, opts.steps // 10))
     if rank == 0:
         check_folder_can_be_made(run_dir, "run folder")
 
-    data = load_data(opts, cfg, device, opts.progress and rank == 0, resume, say)
+    data = data if data is not None else load_data(opts, cfg, device, opts.progress and rank == 0, resume, say)
     if rank == 0:  # only now: data that cannot be trained on leaves no empty run folder behind
         ensure_folder(run_dir, "run folder")
     torch.manual_seed(opts.seed)  # here: loading the text encoder above may or may not have drawn random numbers
@@ -119,13 +124,15 @@ def setup_training(opts: TrainOptions, say=print, ddp_graph_split: bool = False)
         flops = count_flops(policy, data.packed, device)
         say(f"model: {cfg.name}, {params / 1e6:.1f} M parameters, {flops / 1e9:.1f} GFLOPs forward per sample "
             f"(~{3 * flops / 1e9:.0f} GFLOPs per training sample); optimizer {optimizer_name}, lr {lr:.2e}, "
-            f"warmup {warmup}, batch {opts.batch_size} x {world} on {device}" + (", bf16" if opts.amp and device.type == "cuda" else ""))
+            f"warmup {warmup}, batch {opts.batch_size} x {world} on {device}"
+            + (f" ({opts.batch_size // opts.micro_batch} parts of {opts.micro_batch})" if opts.micro_batch else "")
+            + (", bf16" if opts.amp and device.type == "cuda" else ""))
 
     model = policy if world == 1 else data_parallel(policy, device, split_graphs=ddp_graph_split)
     amp = opts.amp and device.type == "cuda"
     train_step = TrainStep(policy, optimizer, state.schedule, amp, opts.clip, model)
     batches = BatchStream(data.packed, cfg, state.generator, opts.batch_size, opts.augment, opts.start_share,
-                          data.task_weights)
+                          data.task_weights, opts.micro_batch)
     return TrainingSetup(opts, resume, rank, world, device, cfg, data, policy, model, state, train_step, batches, amp,
                          total_batch)
 

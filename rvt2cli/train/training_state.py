@@ -45,10 +45,12 @@ class TrainingState:
     step: int = 0
     skipped: int = 0
 
-    def save(self, world: int) -> dict:
-        """The state of every rank (call on every rank; the result is complete on all of them)."""
+    def save(self, world: int, sampling_state: torch.Tensor | None = None) -> dict:
+        """The state of every rank (call on every rank; the result is complete on all of them).
+        `sampling_state`: the generator's state to keep, if not its state now (the loop draws a batch ahead)."""
+        sampling_state = self.generator.get_state() if sampling_state is None else sampling_state
         return {"optimizer": self.optimizer.state_dict(), "schedule": self.schedule.state_dict(),
-                "generators": gather(self.generator.get_state(), world), "torch_rng": gather(torch.get_rng_state(), world),
+                "generators": gather(sampling_state, world), "torch_rng": gather(torch.get_rng_state(), world),
                 "step": self.step, "skipped": self.skipped, "world_size": world}
 
     def restore(self, state: dict, rank: int, world: int, where: Path) -> None:
