@@ -5,7 +5,7 @@
         [--no-amp] [--train-args "OPTIONS"] [--json out.json]
 
 It runs `rvt2 train`'s own step (`rvt2cli.train.step.TrainStep`: the policy under DistributedDataParallel,
-compiled and in bf16 as `rvt2 train` sets them up, `rvt2cli.train.trainer.setup_training`) and reads every
+compiled and in bf16 as `rvt2 train` sets them up, `rvt2cli.train.training_setup.setup_training`) and reads every
 step back. Where a process's own loss is not finite, it runs the same batch's forward again with the same
 weights (a skipped step changes none): through the model exactly as the step did, through the compiled
 network outside DDP, and eagerly, and records which loss terms are finite in each. A fault that appears
@@ -69,7 +69,7 @@ def main() -> None:
            *([] if args.no_compile else ["--compile"]), *(["--no-amp"] if args.no_amp else []), *shlex.split(args.train_args)]
     opts = options_from(train_parser.parse_args(cli))
 
-    from rvt2cli.train.trainer import setup_training
+    from rvt2cli.train.training_setup import setup_training
 
     setup = setup_training(opts, say=print, ddp_graph_split=args.ddp_graphs == "split")
     rank, world, policy, model, step_fn, batches = (setup.rank, setup.world, setup.policy, setup.model,

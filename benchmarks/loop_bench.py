@@ -34,7 +34,8 @@ from rvt2cli.model.policy import RVT2Policy
 from rvt2cli.train.batches import BatchStream
 from rvt2cli.train.optim import make_optimizer, warmup_cosine
 from rvt2cli.train.step import TrainStep
-from rvt2cli.train.trainer import TrainOptions, load_data, train
+from rvt2cli.train.data_sharing import load_data
+from rvt2cli.train.trainer import TrainOptions, train
 
 
 def time_steps(step, next_batch, steps: int, warmup: int, device) -> dict:

@@ -2,7 +2,7 @@
 
     python -m torch.distributed.run --standalone --nproc-per-node 2 -m benchmarks.share_bench [--scale 1] [--json out.json]
 
-`rvt2cli.train.trainer.share_data`, the function `rvt2 train` runs, on data of the shape rvt2-18's 1,800 demos
+`rvt2cli.train.data_sharing.share_data`, the function `rvt2 train` runs, on data of the shape rvt2-18's 1,800 demos
 give: 61,885 training and 617 validation samples packed at 50,000 points (43.2 GiB on the first GPU), the
 per-sample columns the other processes need, and the embeddings of 578 instructions, kept as views into
 one batch as the language model returns them. The contents are random: what is measured is the sending.
@@ -21,9 +21,10 @@ import torch
 import torch.distributed as dist
 
 from rvt2cli.model.language import InstructionCache
-from rvt2cli.train.batches import PackedSamples
+from rvt2cli.train.packed import PackedSamples
 from rvt2cli.train.samples import SampleSet
-from rvt2cli.train.trainer import TrainingData, pickled_part, share_data
+from rvt2cli.train.data_sharing import pickled_part, share_data
+from rvt2cli.train.training_data import TrainingData
 
 TRAIN, VALIDATION, POINTS, INSTRUCTIONS, TASKS, EPISODES = 61_885, 617, 50_000, 578, 18, 1_800  # rvt2-18, 100 demos per task
 LANG_TOKENS, LANG_DIM = 77, 384

@@ -12,7 +12,7 @@ from benchmarks import experiment as runner
 from rvt2cli.cli import build_parser
 from rvt2cli.cli.train import options_from
 from rvt2cli.runtime import usable_cores
-from rvt2cli.train.trainer import model_config
+from rvt2cli.train.run_folder import model_config
 
 EXPERIMENT_FILES = sorted(runner.EXPERIMENTS.glob("*.toml"))
 KIT_REHEARSAL = runner.EXPERIMENTS.parent / "scripts" / "offline-gpu-host" / "rehearse_via.toml"   # not a result

@@ -14,7 +14,8 @@ from rvt2cli.errors import UserError
 from rvt2cli.model.config import STAGE2_MIN_POINTS
 from rvt2cli.train.checkpoint import load_checkpoint, load_policy
 from rvt2cli.train.metrics import prediction_errors
-from rvt2cli.train.trainer import TrainOptions, model_config, train
+from rvt2cli.train.run_folder import model_config
+from rvt2cli.train.trainer import TrainOptions, train
 
 pytestmark = pytest.mark.sim
 
@@ -200,9 +201,13 @@ _SHARED_DATA_CHECK = """
 import dataclasses
 import sys
 import torch
-from rvt2cli.train.trainer import TrainOptions, _distributed, load_data, model_config, read_data
+from rvt2cli.train.data_sharing import load_data
+from rvt2cli.train.run_folder import model_config
+from rvt2cli.train.trainer import TrainOptions
+from rvt2cli.train.training_data import read_data
+from rvt2cli.train.training_state import init_distributed
 
-rank, world = _distributed()
+rank, world = init_distributed()
 opts = TrainOptions(data=[sys.argv[1]], out=sys.argv[2], config="small", max_points=3000, val_episodes=1, progress=False,
                     phrasings="all")
 cfg = model_config(opts)
@@ -217,7 +222,7 @@ for a, b in ((shared.packed, own.packed), (shared.packed_val, own.packed_val)):
 assert shared.selected == own.selected and shared.samples.episodes == own.samples.episodes
 assert shared.packed.phrasings is not None and int(shared.packed.phrasing_count.max()) == 3  # stack_cube's templates
 assert shared.instructions.as_dict().keys() == own.instructions.as_dict().keys()
-assert (len(shared.samples.xyz) > 0) == (rank == 0)  # the others keep no clouds of their own
+assert not shared.samples.xyz and not own.samples.xyz  # the clouds as read are dropped once packed
 print(f"rank {rank} of {world}: the same {len(shared.packed)} samples")
 """
 
@@ -361,7 +366,7 @@ def test_compiled_training_compiles_its_graphs_once(tiny_dataset, tmp_path):
     from rvt2cli.model.config import get_config
     from rvt2cli.model.policy import RVT2Policy
     from rvt2cli.train.batches import BatchStream
-    from rvt2cli.train.trainer import load_data
+    from rvt2cli.train.data_sharing import load_data
 
     torch._dynamo.reset()
     counters.clear()
@@ -432,7 +437,7 @@ def test_start_share_draws_keyframe_starts_and_is_kept_with_the_run(tiny_dataset
 
     from rvt2cli.model.config import get_config
     from rvt2cli.train.batches import TaskSampler
-    from rvt2cli.train.trainer import load_data
+    from rvt2cli.train.data_sharing import load_data
 
     opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "x"), **TINY_TRAIN)
     packed = load_data(opts, get_config("small"), torch.device("cpu"), False, None, lambda *_: None).packed
@@ -513,7 +518,8 @@ def test_an_aim_offset_moves_the_held_targets_and_keeps_the_tcp_for_scoring(tiny
 
     from rvt2cli.data.paths import episode_paths
     from rvt2cli.model.config import SMALL
-    from rvt2cli.train.batches import make_batch, pack
+    from rvt2cli.train.batches import make_batch
+    from rvt2cli.train.packed import pack
     from rvt2cli.train.samples import load_samples
 
     samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
@@ -544,7 +550,7 @@ def test_aim_held_needs_a_task_that_declares_an_aim_offset(tiny_dataset, tmp_pat
 
 
 def test_task_set_trains_on_the_sets_episodes_only(tiny_dataset, tmp_path, cli):
-    from rvt2cli.train.trainer import load_training_data
+    from rvt2cli.train.training_data import load_training_data
 
     samples, _ = load_training_data([str(tiny_dataset)], False, False, keyframe_starts_only=True, task_set="maniskill9")
     assert samples.tasks == ["stack_cube"] and len(samples) > 0
@@ -557,7 +563,7 @@ def test_task_set_trains_on_the_sets_episodes_only(tiny_dataset, tmp_path, cli):
 
 def test_compiled_policy_under_ddp_is_traced_as_whole_graphs(tiny_dataset, tmp_path):
     """Under DistributedDataParallel, rvt2 compiles each stage as one graph: Dynamo's default cut at DDP's
-    gradient buckets gave non-finite bf16 losses on 2 x H200 (rvt2cli.train.trainer.data_parallel). The
+    gradient buckets gave non-finite bf16 losses on 2 x H200 (rvt2cli.train.training_setup.data_parallel). The
     wrapped, compiled policy computes what the policy computes alone."""
     import torch._dynamo
     import torch.distributed as dist
@@ -565,7 +571,8 @@ def test_compiled_policy_under_ddp_is_traced_as_whole_graphs(tiny_dataset, tmp_p
     from rvt2cli.model.config import get_config
     from rvt2cli.model.policy import RVT2Policy
     from rvt2cli.train.batches import BatchStream
-    from rvt2cli.train.trainer import data_parallel, load_data
+    from rvt2cli.train.data_sharing import load_data
+    from rvt2cli.train.training_setup import data_parallel
 
     cfg = get_config("small")
     opts = TrainOptions(data=[str(tiny_dataset)], out=str(tmp_path / "x"), **TINY_TRAIN)
@@ -598,7 +605,8 @@ def test_phrasings_all_draws_each_phrasing_of_the_demos_variation(tiny_dataset, 
     from rvt2cli.data.paths import episode_paths
     from rvt2cli.model.config import get_config
     from rvt2cli.tasks import get_task
-    from rvt2cli.train.batches import make_batch, pack
+    from rvt2cli.train.batches import make_batch
+    from rvt2cli.train.packed import pack
     from rvt2cli.train.samples import load_samples, phrasing_table
 
     samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)

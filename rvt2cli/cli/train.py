@@ -54,12 +54,18 @@ def register(subparsers) -> None:
                         "(default: the TCP throughout, as the paper)")
     p.add_argument("--steps", type=COUNT, help=f"optimizer steps (default {T.steps})")
     p.add_argument("--batch-size", type=COUNT, help=f"per device (default {T.batch_size}, as the paper)")
+    p.add_argument("--micro-batch", type=COUNT, metavar="M",
+                   help="run each batch M samples at a time, the gradients summed to the batch's (the same step with "
+                        "less GPU memory; --batch-size must be a multiple of M)")
     p.add_argument("--lr", type=POSITIVE, help="peak learning rate (default 1.25e-5 x total batch, as the paper)")
     p.add_argument("--warmup", type=NON_NEGATIVE, help=f"warmup steps, at most a tenth of --steps (default {T.warmup})")
     p.add_argument("--max-points", type=integer(16), help=f"points per cloud, subsampled/padded (default {T.max_points})")
     p.add_argument("--no-augment", dest="augment", action="store_false", help="no translation/yaw augmentation (e.g. to overfit a tiny set)")
     p.add_argument("--seed", type=SEED, help=f"(default {T.seed})")
     p.add_argument("--device", help="auto (default), cpu, cuda, cuda:N")
+    p.add_argument("--samples-on", choices=["auto", "host", "device"],
+                   help="where the packed clouds live: host (each batch's rows copied to the GPU beside the step), "
+                        "device, or auto (default: the GPU where they take at most half its free memory)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint, with its options")
     p.add_argument("--time-limit", type=POSITIVE, metavar="MINUTES",
                    help="save a checkpoint and stop once this many minutes have passed since the command started "
@@ -108,7 +114,7 @@ def options_from(args) -> "TrainOptions":  # noqa: F821 - imported lazily
 
     given = {f.name: getattr(args, f.name) for f in fields(TrainOptions) if hasattr(args, f.name)}
     if given.get("resume"):
-        from rvt2cli.train.trainer import stored_options
+        from rvt2cli.train.run_folder import stored_options
 
         stored = stored_options(Path(args.out))
         if stored is not None:  # a time limit belongs to the command that gave it, not to the run

@@ -20,7 +20,7 @@ from rvt2cli.data.paths import episode_paths
 from rvt2cli.data.reader import read_episode_overview
 from rvt2cli.errors import UserError
 from rvt2cli.model.language import InstructionCache
-from rvt2cli.train.batches import pack
+from rvt2cli.train.packed import pack
 from rvt2cli.train.checkpoint import load_policy
 from rvt2cli.train.metrics import precision_report, score_predictions, task_rows
 from rvt2cli.train.samples import load_samples, trained_instructions

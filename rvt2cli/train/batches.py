@@ -1,92 +1,26 @@
-"""Samples packed into tensors (on the training device), sampling task by task, and batches.
-
-Clouds are padded (or randomly subsampled) to `max_points` so every batch has the same shape; the
-renderer ignores the padding through `num_points`. A batch's small host-side arrays (indices,
-targets, augmentation) reach the GPU through pinned memory without blocking the host, so the host
-prepares the next batch while the GPU still runs the current step.
+"""Training batches from the packed samples (rvt2cli.train.packed): sampling task by task, augmentation,
+and the tensors the step takes. The clouds live on the training device or on the host
+(rvt2cli.train.clouds); everything else a batch needs is small. A batch is drawn first (`draw_batch`:
+its samples and every random number of its augmentation, in one order) and made on the device after
+(`assemble`), whole or a part at a time (`--micro-batch`: the parts of one draw are the rows of the whole
+batch). A batch's small host-side arrays (indices, targets, augmentation) reach the GPU through pinned
+memory without blocking the host, so the host prepares the next batch while the GPU still runs the
+current step.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from rvt2cli.model.config import ModelConfig
-from rvt2cli.model.observation import Observation, aim_vector, aimed_target, colours, fit_points
+from rvt2cli.model.observation import Observation, aim_vector, aimed_target, colours
 from rvt2cli.model.rotation import euler_to_bins, quaternion_to_euler
-from rvt2cli.render.workspace import Workspace
-from rvt2cli.tasks import TCP_AIM
 from rvt2cli.train.augment import augment_points, augment_targets, sample_augmentation, yaw_matrices
-from rvt2cli.train.samples import SampleSet
-
-
-@dataclass
-class PackedSamples:
-    xyz: torch.Tensor          # [S, N, 3] float32, world frame
-    rgb: torch.Tensor          # [S, N, 3] uint8
-    count: torch.Tensor        # [S]
-    proprio: torch.Tensor      # [S, P]
-    instruction: torch.Tensor  # [S] index into lang
-    lang: torch.Tensor         # [U, L, LANG_DIM]
-    task: np.ndarray           # [S]
-    keyframe_index: np.ndarray  # [S] which keyframe of its episode the target is (-1: unknown)
-    final_keyframe: np.ndarray  # [S] bool: the target is its episode's last keyframe
-    keyframe_start: np.ndarray  # [S] bool: observed at frame 0 or at a keyframe (what a closed loop sees)
-    target_position: np.ndarray    # [S, 3] world
-    target_quaternion: np.ndarray  # [S, 4] xyzw
-    target_gripper: np.ndarray     # [S] 1 = open
-    target_collision: np.ndarray   # [S] 1 = ignore collisions
-    center: np.ndarray         # [T, 3] workspace centre per task
-    half: np.ndarray           # [T] workspace half extent per task
-    lo: np.ndarray             # [T, 3] scene bounds per task
-    hi: np.ndarray
-    gripper_open: np.ndarray   # [S] bool: the gripper at the observation (proprio)
-    aim_offset: np.ndarray | None = None  # [T, 3] m, TCP frame, per task (rvt2 train --aim-held); None: the TCP
-    phrasings: torch.Tensor | None = None       # [U, K] each instruction's phrasings, indices into lang
-    phrasing_count: torch.Tensor | None = None  # [U] (rvt2 train --phrasings all; `samples.phrasing_table`)
-
-    def __len__(self) -> int:
-        return len(self.count)
-
-
-def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points: int, device, seed: int = 0,
-         aim_offsets: dict[str, list[float]] | None = None,
-         phrasings: tuple[np.ndarray, np.ndarray] | None = None) -> PackedSamples:
-    """`aim_offsets`: task -> aim offset (m, TCP frame) of a policy trained with them (tasks left out: none).
-    `phrasings`: each instruction's phrasings and their count (`samples.phrasing_table`), drawn from in
-    training batches."""
-    rng = np.random.default_rng(seed)
-    n = len(indices)
-    xyz = np.zeros((n, max_points, 3), np.float32)
-    rgb = np.zeros((n, max_points, 3), np.uint8)
-    count = np.zeros(n, np.int64)
-    for row, i in enumerate(indices):
-        xyz[row], rgb[row], count[row] = fit_points(samples.xyz[i], samples.rgb[i], max_points, rng)
-    workspaces = [Workspace.from_bounds(samples.bounds[t]) for t in samples.tasks]
-    pick = np.asarray(indices, dtype=np.int64)
-    keyframe_index = np.asarray(samples.keyframe_index if samples.keyframe_index else [-1] * len(samples), np.int64)
-    final_keyframe = np.asarray(samples.final_keyframe if samples.final_keyframe else [False] * len(samples), bool)
-    keyframe_start = np.asarray(samples.keyframe_start if samples.keyframe_start else [False] * len(samples), bool)
-    return PackedSamples(
-        xyz=torch.from_numpy(xyz).to(device), rgb=torch.from_numpy(rgb).to(device), count=torch.from_numpy(count).to(device),
-        proprio=torch.from_numpy(np.stack([samples.proprio[i] for i in indices])).to(device),
-        instruction=torch.as_tensor([samples.instruction_index[i] for i in indices], device=device),
-        lang=lang.to(device),
-        task=np.asarray(samples.task_index)[pick],
-        keyframe_index=keyframe_index[pick],
-        final_keyframe=final_keyframe[pick],
-        keyframe_start=keyframe_start[pick],
-        target_position=np.stack([samples.target_position[i] for i in indices]).astype(np.float64),
-        target_quaternion=np.stack([samples.target_quaternion[i] for i in indices]),
-        target_gripper=np.asarray(samples.target_gripper_open, np.int64)[pick],
-        target_collision=np.asarray(samples.target_ignore_collisions, np.int64)[pick],
-        center=np.array([w.center for w in workspaces]), half=np.array([w.half_extent for w in workspaces]),
-        lo=np.array([samples.bounds[t][:3] for t in samples.tasks]), hi=np.array([samples.bounds[t][3:] for t in samples.tasks]),
-        gripper_open=np.array([samples.proprio[i][0] > 0.5 for i in indices], bool),
-        aim_offset=None if aim_offsets is None else np.array([aim_offsets.get(t, TCP_AIM) for t in samples.tasks], np.float64),
-        phrasings=None if phrasings is None else torch.from_numpy(phrasings[0]).to(device),
-        phrasing_count=None if phrasings is None else torch.from_numpy(phrasings[1]).to(device),
-    )
+from rvt2cli.train.cloud_shards import ShardedRows
+from rvt2cli.train.clouds import StagedRows, host_rows
+from rvt2cli.train.packed import PackedSamples
 
 
 class TaskSampler:
@@ -164,10 +98,39 @@ def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
     return tensor.pin_memory().to(device, non_blocking=True)
 
 
-def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generator: torch.Generator | None = None,
-               max_translation: float = 0.125, max_yaw_deg: float = 45.0) -> Batch:
-    """A batch of samples `idx`; with a generator, augmented and with a noisy stage-2 centre (training)."""
-    device = packed.xyz.device
+@dataclass
+class Draw:
+    """A batch's samples and every random number its making takes: all that the seed decides."""
+    idx: np.ndarray                      # [B] rows of the packed samples
+    yaw: np.ndarray | None = None        # [B] rad, the augmentation (None: not augmented, a validation batch)
+    shift: np.ndarray | None = None      # [B, 3] m
+    phrasing: np.ndarray | None = None   # [B] in [0, 1): which of its phrasings a sample reads (--phrasings all)
+    noise: np.ndarray | None = None      # [B, 3] m, the stage-2 centre's offset from the target
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def part(self, rows: slice) -> "Draw":
+        """These rows of the batch: the same samples and random numbers as in the whole."""
+        return Draw(*(None if a is None else a[rows] for a in (self.idx, self.yaw, self.shift, self.phrasing, self.noise)))
+
+
+def draw_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generator: torch.Generator,
+               max_translation: float = 0.125, max_yaw_deg: float = 45.0) -> Draw:
+    """A training batch's random numbers for samples `idx`, drawn from `generator` in one fixed order."""
+    yaw, shift = sample_augmentation(len(idx), generator, max_translation, max_yaw_deg)
+    phrasing = noise = None
+    if packed.phrasings is not None:
+        phrasing = torch.rand(len(idx), generator=generator, dtype=torch.float64).numpy()
+    if cfg.stages == 2:
+        noise = (torch.rand(len(idx), 3, generator=generator, dtype=torch.float64).numpy() * 2 - 1) * cfg.stage2_noise
+    return Draw(np.asarray(idx), yaw, shift, phrasing, noise)
+
+
+def assemble(packed: PackedSamples, draw: Draw, cfg: ModelConfig, rows=None) -> Batch:
+    """The batch `draw` describes, on the packed samples' device. `rows` brings host-resident clouds there
+    (`StagedRows`, `ShardedRows`; default: through freshly pinned memory)."""
+    device, idx = packed.device, draw.idx
     tasks = packed.task[idx]
     center, half, lo, hi = packed.center[tasks], packed.half[tasks], packed.lo[tasks], packed.hi[tasks]
     position, quaternion = packed.target_position[idx], packed.target_quaternion[idx]
@@ -176,22 +139,25 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
     if aim is not None:  # the target is where the aim goes, rigidly attached to the TCP's: augmented alike
         position = aimed_target(position, quaternion, aim * half[:, None])
     index = to_device(np.asarray(idx, np.int64), device)
-    xyz = packed.xyz[index]
+    if not packed.clouds_on_host:
+        xyz, rgb = packed.xyz[index], packed.rgb[index]
+    elif rows is not None:
+        xyz, rgb = rows(idx)
+    else:
+        xyz, rgb = host_rows(packed.xyz, packed.rgb, packed.cloud_rows(idx), device)
     center_t = to_device(center.astype(np.float32), device)
-    if generator is not None:
-        yaw, shift = sample_augmentation(len(idx), generator, max_translation, max_yaw_deg)
-        position, quaternion, yaw, shift = augment_targets(position, quaternion, center, lo, hi, yaw, shift)
+    if draw.yaw is not None:
+        position, quaternion, yaw, shift = augment_targets(position, quaternion, center, lo, hi, draw.yaw, draw.shift)
         xyz = augment_points(xyz, center_t, to_device(yaw_matrices(yaw).astype(np.float32), device),
                              to_device(shift.astype(np.float32), device))
     tcp = position if aim is None else aimed_target(position, quaternion, -aim * half[:, None])
     half_t = to_device(half.astype(np.float32), device)[:, None, None]
     points = (xyz - center_t[:, None]) / half_t
     instruction = packed.instruction[index]
-    if generator is not None and packed.phrasings is not None:  # one of each sample's phrasings, uniformly
-        draw = to_device(torch.rand(len(idx), generator=generator, dtype=torch.float64).numpy(), device)
-        choice = (draw * packed.phrasing_count[instruction]).long()
+    if draw.phrasing is not None:  # one of each sample's phrasings, uniformly
+        choice = (to_device(draw.phrasing, device) * packed.phrasing_count[instruction]).long()
         instruction = packed.phrasings[instruction, choice]
-    obs = Observation(points=points, rgb=colours(packed.rgb[index]), num_points=packed.count[index],
+    obs = Observation(points=points, rgb=colours(rgb), num_points=packed.count[index],
                       proprio=packed.proprio[index], lang=packed.lang[instruction],
                       aim=None if aim is None else to_device(aim, device))
     position_cube = ((position - center) / half[:, None]).astype(np.float32)
@@ -203,27 +169,71 @@ def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generat
                   gripper=to_device(packed.target_gripper[idx], device),
                   collision=to_device(packed.target_collision[idx], device),
                   quaternion=quaternion, half=half)
-    if generator is not None and cfg.stages == 2:
-        noise = (torch.rand(len(idx), 3, generator=generator, dtype=torch.float64).numpy() * 2 - 1) * cfg.stage2_noise
-        batch.stage2_center = to_device((position_cube + (noise / half[:, None]).astype(np.float32)), device)
+    if draw.noise is not None and cfg.stages == 2:
+        batch.stage2_center = to_device((position_cube + (draw.noise / half[:, None]).astype(np.float32)), device)
     return batch
+
+
+def make_batch(packed: PackedSamples, idx: np.ndarray, cfg: ModelConfig, generator: torch.Generator | None = None,
+               max_translation: float = 0.125, max_yaw_deg: float = 45.0) -> Batch:
+    """A batch of samples `idx`; with a generator, augmented and with a noisy stage-2 centre (training)."""
+    draw = Draw(np.asarray(idx)) if generator is None else draw_batch(packed, idx, cfg, generator, max_translation, max_yaw_deg)
+    return assemble(packed, draw, cfg)
+
+
+class MicroBatches(Sequence):
+    """One drawn batch made a part at a time (`--micro-batch`), each part when it is reached, so that only
+    one part's clouds and activations are on the GPU at once; their losses, weighted by their share of
+    the rows, add up to the whole batch's."""
+
+    def __init__(self, make, draw: Draw, size: int):
+        self.make, self.total = make, len(draw)
+        self.parts = [draw.part(slice(start, start + size)) for start in range(0, len(draw), size)]
+        self.first = make(self.parts[0])   # made now, as a whole batch would be (the loop makes it a step ahead)
+
+    def __len__(self) -> int:
+        return len(self.parts)
+
+    def __getitem__(self, i: int) -> Batch:
+        if not 0 <= i < len(self.parts):
+            raise IndexError(i)
+        return self.first if i == 0 else self.make(self.parts[i])
+
+    def weight(self, i: int) -> float:
+        return len(self.parts[i]) / self.total
 
 
 class BatchStream:
     """The training loop's batches, in order: samples drawn task by task (`TaskSampler`), augmented, on
-    the device (what `rvt2 train` runs and `benchmarks/loop_bench.py` times). Making one costs the host
-    about a millisecond at batch 192 (H200 machine), so it is made in turn: a thread preparing batches
-    ahead measured no faster."""
+    the device (what `rvt2 train` runs and `benchmarks/loop_bench.py` times); with `micro_batch` smaller
+    than `batch_size`, each as `MicroBatches` of the same draw. Making one costs the host about a
+    millisecond at batch 192 (H200 machine), so it is made in turn: a thread preparing batches ahead
+    measured no faster; host-resident clouds add their rows' gather (`clouds.StagedRows`)."""
 
     def __init__(self, packed: PackedSamples, cfg: ModelConfig, generator: torch.Generator, batch_size: int,
-                 augment: bool = True, start_share: float = 0.0, task_weights: np.ndarray | None = None):
+                 augment: bool = True, start_share: float = 0.0, task_weights: np.ndarray | None = None,
+                 micro_batch: int | None = None):
         self.packed, self.cfg, self.generator, self.batch_size = packed, cfg, generator, batch_size
         self.max_translation, self.max_yaw_deg = (0.125, 45.0) if augment else (0.0, 0.0)
         self.sampler = TaskSampler(packed.task, packed.keyframe_start, start_share, task_weights)
+        self.micro_batch = micro_batch if micro_batch and micro_batch < batch_size else None
+        rows = self.micro_batch or batch_size
+        self.rows = None
+        if packed.shard is not None:
+            self.rows = ShardedRows(packed.xyz, packed.rgb, *packed.shard, packed.device, rows)
+        elif packed.clouds_on_host:
+            self.rows = StagedRows(packed.xyz, packed.rgb, packed.device, rows)
 
     def __iter__(self):
         return self
 
-    def __next__(self) -> Batch:
-        return make_batch(self.packed, self.sampler.sample(self.batch_size, self.generator), self.cfg, self.generator,
+    def draw(self) -> Draw:
+        return draw_batch(self.packed, self.sampler.sample(self.batch_size, self.generator), self.cfg, self.generator,
                           self.max_translation, self.max_yaw_deg)
+
+    def make(self, draw: Draw) -> Batch:
+        return assemble(self.packed, draw, self.cfg, self.rows)
+
+    def __next__(self) -> Batch | MicroBatches:
+        draw = self.draw()
+        return self.make(draw) if self.micro_batch is None else MicroBatches(self.make, draw, self.micro_batch)

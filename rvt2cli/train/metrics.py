@@ -18,7 +18,8 @@ import numpy as np
 import torch
 
 from rvt2cli.model.rotation import angle_between
-from rvt2cli.train.batches import PackedSamples, make_batch
+from rvt2cli.train.batches import make_batch
+from rvt2cli.train.packed import PackedSamples
 
 
 @dataclass

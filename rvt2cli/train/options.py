@@ -21,6 +21,7 @@ class TrainOptions:
     stage2_min_points: int | None = None  # inference, stored in the checkpoint (ModelConfig); None: the config's (200)
     steps: int = 10_000
     batch_size: int = 24
+    micro_batch: int | None = None   # rows per forward/backward pass, gradients accumulated to batch_size; None: all
     lr: float | None = None          # default: 1.25e-5 x total batch (the paper's rule)
     weight_decay: float = 1e-4
     warmup: int = 2000               # capped at a tenth of the steps
@@ -29,6 +30,7 @@ class TrainOptions:
     augment: bool = True             # the paper's translation and yaw augmentation
     seed: int = 0
     device: str = "auto"
+    samples_on: str = "auto"         # where the packed clouds live: host, device, or auto (rvt2cli.train.clouds)
     resume: bool = False
     save_every: int = 1000
     val_every: int = 500

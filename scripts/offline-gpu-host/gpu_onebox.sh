@@ -17,13 +17,13 @@
 #
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
-# building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, ddpbench,
+# building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, memorybench, ddpbench,
 # eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile, evalprofile.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
-# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results);
+# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, MEMORYBENCH_ARGS, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results);
 # EXACT=1: `weights` sends float32 weights as trained (an evaluation to be resumed elsewhere: 25 pieces for rvt2-18);
 # RESUMABLE=1: also the training state and the run's logs (a training stopped by --time-limit, resumed elsewhere).
 set -euo pipefail
@@ -233,6 +233,17 @@ PY
     grep -v "^data:" "$W/loop_bench.log" | tail -24
     phase loopbench $(( $(clock) - t ))
     ;;
+  memorybench)  # rvt2 train with the clouds on the GPU, on the host, and on the host in micro-batches (benchmarks/memory_bench.py)
+    t=$(clock)
+    # DATA: a sample cache (rvt2 pack-samples) or demos; by default every 4th demo file, as loopbench
+    # shellcheck disable=SC2086  # DATA and MEMORYBENCH_ARGS are lists
+    python3 -m benchmarks.memory_bench --data ${DATA:-$(ls "$W"/demos/*.mcap | awk 'NR % 4 == 1')} --config "$CONFIG" \
+      --batch-size "$BATCH" ${MEMORYBENCH_ARGS:-} --json "$W/memory_bench.json" > "$W/memory_bench.log" 2>&1 \
+      || echo "memory_bench failed (the chain goes on): see memory_bench.log"
+    grep -v "^data:" "$W/memory_bench.log" | tail -12
+    cp "$W/memory_bench.json" "$OUT/" 2>/dev/null || true
+    phase memorybench $(( $(clock) - t ))
+    ;;
   repro)  # RUN's evaluation again on REPRO_TASKS x REPRO_EPISODES: the same episodes, record for record?
     t=$(clock)
     tasks=${REPRO_TASKS:-insert_peg,plug_charger,lift_peg_upright}
@@ -324,7 +335,7 @@ print("\n".join(all_pieces(json.load(open(sys.argv[1])))))' "$W/export/$RUN/mani
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile" >&2
     exit 2
     ;;
   esac
