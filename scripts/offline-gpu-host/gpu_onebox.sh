@@ -18,7 +18,7 @@
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
 # building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, memorybench, ddpbench,
-# eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile, evalprofile.
+# eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile, evalprofile, capturetests.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
@@ -181,10 +181,11 @@ PY
       --workers "$WORKERS" --out "$W/eval_replay" --no-progress 2>&1 | tail -5
     phase replay $(( $(clock) - t ))
     ;;
-  recordbench)  # recording's cost: EPISODES successful demos of every task of TASK_SET, WORKERS workers
+  recordbench)  # recording's cost: EPISODES successful demos of every task of TASK_SET, WORKERS workers (RECORDBENCH_CAPTURE)
     t=$(clock)
-    python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --seeds 0 --episodes "$EPISODES" \
-      --workers "$WORKERS" --json "$W/record_bench_${TASK_SET:-rlbench18}.json" 2>&1 | tail -3
+    capture=${RECORDBENCH_CAPTURE:-${RVT2_CAPTURE:-auto}}   # auto: a camera group where CUDA renders; cameras: one by one
+    RVT2_CAPTURE=$capture python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --seeds 0 --episodes "$EPISODES" \
+      --workers "$WORKERS" --json "$W/record_bench_${TASK_SET:-rlbench18}_$capture.json" 2>&1 | tail -3
     phase recordbench $(( $(clock) - t ))
     ;;
   capturebench)  # the cameras' capture: capture_cameras against SAPIEN's camera groups, 1 and many processes
@@ -193,11 +194,19 @@ PY
       --scenes "${CAPTURE_SCENES:-1,8}" --json "$W/capture_bench.json" 2>&1 | tail -14
     phase capturebench $(( $(clock) - t ))
     ;;
-  recordprofile)  # where a demo's core-seconds go: PROFILE_DEMOS demos of every task of TASK_SET, one process
+  recordprofile)  # where a demo's core-seconds go: PROFILE_DEMOS demos of every task of TASK_SET, one process, for each
+                  # capture path of PROFILE_CAPTURES (auto: a camera group where CUDA renders; cameras: one by one)
     t=$(clock)
-    python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --profile "${PROFILE_DEMOS:-2}" \
-      --json "$W/record_profile.json" 2>&1 | tail -14
+    for capture in ${PROFILE_CAPTURES:-auto}; do
+      RVT2_CAPTURE=$capture python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --profile "${PROFILE_DEMOS:-2}" \
+        --json "$W/record_profile_$capture.json" 2>&1 | tail -14
+    done
     phase recordprofile $(( $(clock) - t ))
+    ;;
+  capturetests)  # the camera group against camera by camera, on this GPU (tests/test_capture.py; skipped without one)
+    t=$(clock)
+    python3 -m pytest -q -p no:cacheprovider tests/test_capture.py 2>&1 | tail -15 | tee "$W/capture_tests.txt"
+    phase capturetests $(( $(clock) - t ))
     ;;
   evalprofile)  # where an evaluation episode's core-seconds go: rvt2-18's recorded predictions replayed, one process
     t=$(clock)
@@ -300,7 +309,7 @@ PY
     ;;
   results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
-    files=(phases.tsv record_bench_*.json capture_bench.json record_profile.json eval_profile.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+    files=(phases.tsv record_bench_*.json capture_bench.json record_profile_*.json eval_profile.json capture_tests.txt memory_bench.json memory_bench.log ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
       e=$(basename "$EXPERIMENT" .toml)
@@ -335,7 +344,7 @@ print("\n".join(all_pieces(json.load(open(sys.argv[1])))))' "$W/export/$RUN/mani
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile|capturetests" >&2
     exit 2
     ;;
   esac
