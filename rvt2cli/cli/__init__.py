@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "rvt2cli.cli.train",
     "rvt2cli.cli.eval",
     "rvt2cli.cli.export",
+    "rvt2cli.cli.serve",
     "rvt2cli.cli.doctor",
 ]
 

@@ -17,7 +17,7 @@
 #
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
-# building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, ddpbench,
+# building blocks of the benchmarks: bench, servebench, record, keyframes, merged, heldout, train, loopbench, ddpbench,
 # eval, oracle, replay, repro, offline, recordbench.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
@@ -134,6 +134,11 @@ PY
     python3 -m benchmarks.policy_bench --configs rvt2 --batch "24,$BATCH" --compile --skip-inference --steps 15 \
       --json "$OUT/policy_bench.json" 2>&1 | tail -6
     phase bench $(( $(clock) - t ))
+    ;;
+  servebench)  # rvt2 serve under 1, 4 and 16 client processes, with and without batching (benchmarks/serve_bench.py)
+    t=$(clock)
+    python3 -m benchmarks.serve_bench --device "$DEVICE" --config "$CONFIG" --json "$OUT/serve_bench.json" 2>&1 | tail -12
+    phase servebench $(( $(clock) - t ))
     ;;
   record)
     t=$(clock)
