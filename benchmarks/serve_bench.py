@@ -92,8 +92,9 @@ def robot(url: str, frames: dict, start_at: float, stop_at: float, results) -> N
 
 # --- the server and the measurement -------------------------------------------------------------------
 
-def random_checkpoint(config: str, folder: Path) -> Path:
-    """A checkpoint of `config`'s shape with random weights, one task (the default scene bounds), one instruction."""
+def random_checkpoint(config: str, folder: Path, tasks: dict[str, list[float]] | None = None) -> Path:
+    """A checkpoint of `config`'s shape with random weights, for `tasks` (name -> scene bounds; default: one task
+    in the default bounds, with one instruction's embedding; other instructions are embedded when asked)."""
     import torch
 
     from rvt2cli.model.config import get_config
@@ -104,8 +105,9 @@ def random_checkpoint(config: str, folder: Path) -> Path:
 
     cfg = get_config(config)
     torch.manual_seed(0)
-    save_checkpoint(folder, 0, RVT2Policy(cfg), cfg, {"tasks": [TASK], "bounds": {TASK: list(DEFAULT_SCENE_BOUNDS)}},
-                    {INSTRUCTION: torch.randn(cfg.lang_tokens, LANG_DIM)}, {})
+    instructions = {} if tasks else {INSTRUCTION: torch.randn(cfg.lang_tokens, LANG_DIM)}
+    tasks = tasks or {TASK: list(DEFAULT_SCENE_BOUNDS)}
+    save_checkpoint(folder, 0, RVT2Policy(cfg), cfg, {"tasks": list(tasks), "bounds": tasks}, instructions, {})
     return folder
 
 
@@ -113,6 +115,7 @@ def batch_parity(checkpoint: Path, device: str, cameras: int, size: int, request
     """The model's batched forward against one request at a time, on this device: inputs of different
     clouds (sizes too) and gripper states, answered together and alone."""
     import torch
+    from scipy.spatial.transform import Rotation
 
     from rvt2cli.deploy import CameraFrame, KeyframePolicy
     from rvt2cli.tasks import DEFAULT_SCENE_BOUNDS
@@ -124,7 +127,8 @@ def batch_parity(checkpoint: Path, device: str, cameras: int, size: int, request
     alone = [policy.predict_inputs([i])[0] for i in inputs]
     together = policy.predict_inputs(inputs)
     positions = [1000 * float(np.linalg.norm(np.subtract(a.position, b.position))) for a, b in zip(alone, together)]
-    angles = [float(np.degrees(2 * np.arccos(min(1.0, abs(np.dot(a.quaternion, b.quaternion)))))) for a, b in zip(alone, together)]
+    angles = [float(np.degrees((Rotation.from_quat(a.quaternion).inv() * Rotation.from_quat(b.quaternion)).magnitude()))
+              for a, b in zip(alone, together)]
     del policy
     if device.startswith("cuda"):
         torch.cuda.empty_cache()
