@@ -3,8 +3,8 @@
 The client answers what `KeyframePolicy.predict` answers in this process (exactly, on the CPU), from Python
 3.11 here and from 3.10 and 3.12 where they are found; requests that arrive together share a forward pass
 and each gets its own answer; malformed requests are refused naming their field while good ones go on
-being answered; the evaluation over the wire equals the evaluation in-process; SIGTERM answers what is in
-flight before the server stops.
+being answered; the evaluation over the wire, and with one policy shared by its workers, equals the
+evaluation with a policy in each worker; SIGTERM answers what is in flight before the server stops.
 """
 
 import hashlib
@@ -402,15 +402,29 @@ def test_serve_refuses_unsafe_or_impossible_setups_in_one_line(tiny_checkpoint, 
 
 # --- the wire, end to end ------------------------------------------------------------------------------
 
-def test_eval_over_the_wire_equals_eval_in_process(served, tiny_checkpoint, tmp_path):
+def test_eval_over_the_wire_and_with_a_shared_policy_equals_eval_with_a_policy_per_worker(served, tiny_checkpoint, tmp_path):
+    """The same seeds three ways: two workers each loading the checkpoint (the default), the served policy
+    over the wire (`--policy-url`), and two workers asking one copy in the main process (`--shared-policy`)."""
     from rvt2cli.eval.runner import EvalOptions, evaluate
 
     run_dir, _ = tiny_checkpoint
     options = dict(episodes=2, keyframe_budget=3)
-    here = evaluate(EvalOptions(checkpoint=str(run_dir), out=str(tmp_path / "here"), **options))
+    per_worker = evaluate(EvalOptions(checkpoint=str(run_dir), workers=2, out=str(tmp_path / "per_worker"), **options))
     wire = evaluate(EvalOptions(checkpoint=None, policy_url=served.url, token=TOKEN, out=str(tmp_path / "wire"), **options))
-    assert [job for job, _ in here.outcomes] == [job for job, _ in wire.outcomes]
-    for (_, a), (_, b) in zip(here.outcomes, wire.outcomes):
-        assert (a.success, a.failure, a.control_steps) == (b.success, b.failure, b.control_steps)
-        assert [(s.keyframe, s.retry, s.reached) for s in a.steps] == [(s.keyframe, s.retry, s.reached) for s in b.steps]
+    shared = evaluate(EvalOptions(checkpoint=str(run_dir), workers=2, shared_policy=True, out=str(tmp_path / "shared"), **options))
+
+    def outcomes(result) -> dict:
+        return {job: (o.success, o.failure, o.control_steps, [(s.keyframe, s.retry, s.reached) for s in o.steps])
+                for job, o in result.outcomes}
+
+    assert len(outcomes(per_worker)) == 2 and all(o[3] for o in outcomes(per_worker).values())
+    assert outcomes(wire) == outcomes(per_worker)
+    assert outcomes(shared) == outcomes(per_worker)
     assert "served, sha256 " in wire.report["checkpoint"]
+    assert shared.report["checkpoint"] == per_worker.report["checkpoint"] and shared.report["shared_policy"] is True
+    assert "shared by the workers" in (tmp_path / "shared" / "eval.md").read_text()
+
+
+def test_a_shared_policy_needs_a_checkpoint_and_workers(tiny_checkpoint, tmp_path, cli):
+    assert_one_line_error(cli("eval", "--checkpoint", tiny_checkpoint[0], "--shared-policy", "--out", tmp_path / "e"),
+                          "--shared-policy", "--workers 2")

@@ -32,6 +32,10 @@ def register(subparsers) -> None:
     p.add_argument("--episodes", type=COUNT, default=E.episodes, help=f"per task (default {E.episodes})")
     p.add_argument("--seed", type=SEED, default=E.seed, help=f"first seed (default {E.seed}; demos use 0 upwards)")
     p.add_argument("--workers", type=integer(1, 256), default=E.workers, help="parallel simulator processes, one core each")
+    p.add_argument("--shared-policy", action="store_true",
+                   help="with --workers N: load the checkpoint once, in this process (on --device), and let the N simulator "
+                        "processes ask it for keyframes over the loopback, batched (docs/SERVING.md); default: each worker "
+                        "loads its own copy")
     p.add_argument("--oracle", action="store_true", help="also run the executor on ground-truth keyframes")
     p.add_argument("--demos", nargs="+", metavar="PATH", help="with --oracle: use these recorded demos' keyframes (and seeds)")
     p.add_argument("--instruction", help="evaluate with this phrasing of the instruction instead of the task's")
@@ -92,7 +96,8 @@ def run(args) -> int:
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
                        device=args.device, resume=args.resume, replay=args.replay, insertion_search=args.insertion_search,
-                       stage2_min_points=args.stage2_min_points, policy_url=args.policy_url, token=token)
+                       stage2_min_points=args.stage2_min_points, policy_url=args.policy_url, token=token,
+                       shared_policy=args.shared_policy)
     bars = []
 
     def on_start(total):

@@ -37,6 +37,7 @@ class EvalOptions:
     stage2_min_points: int | None = None  # overrides the checkpoint's (ModelConfig.stage2_min_points)
     policy_url: str | None = None     # a policy served by `rvt2 serve` instead of a checkpoint loaded here
     token: str | None = field(default=None, repr=False)  # the served policy's shared secret (never in a journal)
+    shared_policy: bool = False       # one copy of the checkpoint in the main process answers every worker
 
     @property
     def policy(self) -> str | None:

@@ -5,12 +5,13 @@ Every finished episode goes into the journal at once (`rvt2cli.eval.journal`): a
 process costs the episodes it was running, not the finished ones, and `--resume` runs the rest.
 """
 
+import contextlib
 import itertools
 import time
 import warnings
 from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from rvt2cli.atomic import ensure_folder
@@ -182,6 +183,9 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
         raise UserError("eval takes --checkpoint or --policy-url, not both: --policy-url runs a policy served by `rvt2 serve`")
     if opts.policy and opts.replay:
         raise UserError("eval takes --checkpoint or --replay, not both: --replay runs a recorded evaluation's keyframes")
+    if opts.shared_policy and (not opts.checkpoint or opts.workers < 2):
+        raise UserError("--shared-policy loads --checkpoint once, in this process, for the --workers processes to share; "
+                        "give --checkpoint and --workers 2 or more")
     if opts.policy_url and (opts.device != "cpu" or opts.stage2_min_points is not None):
         raise UserError("--device and --stage2-min-points set up a checkpoint loaded here; a served policy (--policy-url) "
                         "runs as `rvt2 serve` was started")
@@ -244,13 +248,13 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
                 "paraphrases": opts.paraphrases, "first_phrasing": opts.first_phrasing, "variations": opts.variations,
                 "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
                 "search_grids": search_grids(sorted({job.task for job in jobs})) if opts.insertion_search else {},
-                "untrained_tasks": untrained, "seconds": time.perf_counter() - start}
+                "untrained_tasks": untrained, "shared_policy": opts.shared_policy, "seconds": time.perf_counter() - start}
         result = build_report(journal.records, meta)
         write_report(result, out_dir)
         return result
 
     try:
-        _run_jobs(opts, demos, todo, done)
+        _run_jobs(opts, demos, todo, done, driver.name)
     except BrokenProcessPool as e:
         report()
         raise UserError(f"a simulator process died ({e}); the {len(journal.records)} finished episodes are kept in "
@@ -279,7 +283,7 @@ def _policy_description(opts: EvalOptions) -> dict:
             "rigs": info.get("rigs", {}), "phrasings": info.get("phrasings")}
 
 
-def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
+def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done, renderer: str = "lavapipe") -> None:
     if not jobs:
         return
     if opts.workers <= 1:
@@ -294,13 +298,40 @@ def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
         finally:
             torch.set_num_threads(threads)
         return
-    # a worker may take whichever GPU it is given unless the policy's device names one ("cuda:1")
-    with worker_pool(opts.workers, _init, (opts, demos), gpus="all" if opts.device.startswith("cuda:") else "one") as pool:
-        pending = {pool.submit(_run, job): job for job in jobs}
-        while pending:
-            completed, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for future in completed:
-                done(pending.pop(future), future.result())
+    with _policy_for_workers(opts) as worker_opts:
+        if worker_opts.policy_url and renderer == "lavapipe":
+            gpus = "none"   # the workers render on the CPU and hold no policy: they need no GPU (no CUDA context each)
+        else:  # a worker may take whichever GPU it is given unless the policy's device names one ("cuda:1")
+            gpus = "all" if opts.device.startswith("cuda:") else "one"
+        with worker_pool(opts.workers, _init, (worker_opts, demos), gpus=gpus) as pool:
+            pending = {pool.submit(_run, job): job for job in jobs}
+            while pending:
+                completed, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for future in completed:
+                    done(pending.pop(future), future.result())
+
+
+@contextlib.contextmanager
+def _policy_for_workers(opts: EvalOptions):
+    """The options the worker processes run with. By default each loads the checkpoint itself (on --device:
+    a copy of the policy, and a CUDA context, per worker). With --shared-policy the checkpoint is loaded once,
+    here, and served to the workers on the loopback by `rvt2 serve`'s server in a thread (a token of this run
+    alone); its batcher answers the keyframe requests that arrive together in one forward pass."""
+    if not opts.shared_policy:
+        yield opts
+        return
+    import secrets
+
+    from rvt2cli.serve.options import ServeOptions
+    from rvt2cli.serve.server import open_server
+
+    token = secrets.token_urlsafe(32)
+    server = open_server(opts.checkpoint, opts.device, ServeOptions(port=0, token=token, max_batch=opts.workers),
+                         opts.stage2_min_points).start_in_thread()
+    try:
+        yield replace(opts, checkpoint=None, policy_url=server.url, token=token, device="cpu", stage2_min_points=None)
+    finally:
+        server.stop()
 
 
 def _save_media(opts: EvalOptions, out_dir: Path, job: Job, outcome: Outcome) -> None:

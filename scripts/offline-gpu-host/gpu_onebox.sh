@@ -17,13 +17,14 @@
 #
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
-# building blocks of the benchmarks: bench, servebench, record, keyframes, merged, heldout, train, loopbench, ddpbench,
-# eval, oracle, replay, repro, offline, recordbench.
+# building blocks of the benchmarks: bench, servebench, evalsharebench, record, keyframes, merged, heldout, train,
+# loopbench, ddpbench, eval, oracle, replay, repro, offline, recordbench.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
-# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results);
+# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results),
+# SHARE_EPISODES (per task) and SHARE_KEYFRAMES (the keyframe budget) for evalsharebench;
 # EXACT=1: `weights` sends float32 weights as trained (an evaluation to be resumed elsewhere: 25 pieces for rvt2-18);
 # RESUMABLE=1: also the training state and the run's logs (a training stopped by --time-limit, resumed elsewhere).
 set -euo pipefail
@@ -139,6 +140,12 @@ PY
     t=$(clock)
     python3 -m benchmarks.serve_bench --device "$DEVICE" --config "$CONFIG" --json "$OUT/serve_bench.json" 2>&1 | tail -12
     phase servebench $(( $(clock) - t ))
+    ;;
+  evalsharebench)  # an evaluation's WORKERS sharing one policy (--shared-policy) against one each (benchmarks/eval_share_bench.py)
+    t=$(clock)
+    python3 -m benchmarks.eval_share_bench --random "$CONFIG" --tasks "$(echo $TASKS | tr ' ' ,)" --episodes "${SHARE_EPISODES:-2}" \
+      --workers "$WORKERS" --device "$DEVICE" --keyframe-budget "${SHARE_KEYFRAMES:-10}" --json "$OUT/eval_share_bench.json" 2>&1 | tail -4
+    phase evalsharebench $(( $(clock) - t ))
     ;;
   record)
     t=$(clock)
