@@ -17,7 +17,7 @@ STAMP := $(VENV)/.rvt2-setup
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 
-.PHONY: setup test demo bench clean-venv
+.PHONY: setup test demo bench client-check clean-venv
 
 setup: $(STAMP)
 
@@ -41,6 +41,17 @@ test: setup
 
 demo: setup
 	./scripts/demo.sh
+
+# rvt2_client on the robots' Pythons (ROS 2 Humble's 3.10 with its numpy 1.21, and 3.12): a virtualenv per
+# interpreter with the client alone, then the client's test against a real `rvt2 serve` (tests/test_serve.py).
+CLIENT_PYTHONS ?= $(wildcard $(HOME)/.pyenv/versions/3.10.*/bin/python $(HOME)/.pyenv/versions/3.12.*/bin/python)
+
+client-check: setup
+	@set -e; for py in $(CLIENT_PYTHONS); do v=$$($$py -c 'import sys; print("%d.%d" % sys.version_info[:2])'); \
+	  test -x .venv-client-$$v/bin/python || $$py -m venv .venv-client-$$v; \
+	  .venv-client-$$v/bin/pip install -q ./rvt2_client $$(test $$v = 3.10 && echo numpy==1.21.5); done
+	RVT2_CLIENT_PYTHONS="$$(ls .venv-client-*/bin/python 2>/dev/null)" OMP_NUM_THREADS=1 $(PY) -m pytest -q -n 0 \
+	  tests/test_serve.py -k client_answers
 
 bench: setup
 	$(PY) -m benchmarks.run_all

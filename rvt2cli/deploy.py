@@ -19,31 +19,53 @@ ONNX or TorchScript file, with the same answers (the export is parity-checked).
 """
 
 import json
-from dataclasses import replace
+import threading
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from rvt2cli.data.episode import CameraFrame
+from rvt2cli.data.episode import CameraFrame, Cloud
 from rvt2cli.data.fusion import depth_in_metres, fuse, intrinsic_from_opencv
 from rvt2cli.data.keyframes import Keyframe
 from rvt2cli.errors import UserError
 from rvt2cli.model.language import InstructionCache
 from rvt2cli.model.observation import aim_offset_or_tcp, colours, fit_points, proprio_vector
 
-__all__ = ["CameraFrame", "Keyframe", "KeyframePolicy"]
+__all__ = ["CameraFrame", "Keyframe", "KeyframePolicy", "PolicyInput"]
+
+
+@dataclass
+class PolicyInput:
+    """One observation as the model takes it: the fused cloud (base frame), the robot's state, the
+    instruction's token embeddings, and the task's scene bounds and aim offset."""
+
+    cloud: Cloud
+    gripper_open: bool
+    finger_positions: np.ndarray   # float32 [2], metres
+    keyframes_done: int
+    lang: torch.Tensor             # [L, LANG_DIM]
+    bounds: list[float]
+    aim_offset: list[float] | None
 
 
 class KeyframePolicy:
-    """A trained policy (a checkpoint or an exported folder) answering `predict(frames, ...)`."""
+    """A trained policy (a checkpoint or an exported folder) answering `predict(frames, ...)`.
+
+    `predict` is `inputs` (fuse the frames, look up the instruction: per request, on the CPU) followed by
+    `predict_inputs` (the model, for one input or a batch of them); `rvt2 serve` calls the two apart, so
+    that requests from several robots share one forward pass."""
+
+    kind = ""          # "checkpoint" | "export"
+    device = "cpu"
 
     def __init__(self, tasks: dict[str, list[float]], lang_tokens: int, embeddings: dict[str, torch.Tensor],
                  aim_offsets: dict[str, list[float]] | None = None):
         self.tasks = tasks   # task -> scene bounds the policy was trained with
         self.aim_offsets = aim_offsets or {}  # task -> aim offset (policies trained with --aim-held)
         self.instructions = InstructionCache(lang_tokens, embeddings)
-
+        self._embedding = threading.Lock()  # one thread embeds a new instruction at a time
     @staticmethod
     def load(path: str | Path, device: str = "cpu", stage2_min_points: int | None = None) -> "KeyframePolicy":
         """A checkpoint (`stage2_min_points` overrides its own) or an exported folder (fixed when exported)."""
@@ -67,7 +89,8 @@ class KeyframePolicy:
             raise UserError(f"give task= (one of {', '.join(self.tasks)}) or scene_bounds= for this policy")
         return list(self.tasks[task])
 
-    def cloud(self, frames: dict[str, CameraFrame], bounds, opencv_intrinsics: bool = True):
+    @staticmethod
+    def cloud(frames: dict[str, CameraFrame], bounds, opencv_intrinsics: bool = True) -> Cloud:
         """The fused cloud the policy sees: every camera's points in the base frame, cropped to the bounds."""
         prepared = {name: replace(f, depth=depth_in_metres(f.depth),
                                   intrinsic=intrinsic_from_opencv(f.intrinsic) if opencv_intrinsics else np.asarray(f.intrinsic))
@@ -78,36 +101,70 @@ class KeyframePolicy:
                             "(camera-to-base, OpenCV axes) and the bounds")
         return cloud
 
+    def inputs(self, frames: dict[str, CameraFrame], instruction: str, gripper_open: bool, finger_positions=(0.04, 0.04),
+               keyframes_done: int = 0, task: str | None = None, scene_bounds=None,
+               opencv_intrinsics: bool = True) -> PolicyInput:
+        """What the model takes for these frames (see `predict`)."""
+        bounds = self.scene_bounds(task, scene_bounds)
+        return self.cloud_inputs(self.cloud(frames, bounds, opencv_intrinsics), instruction, gripper_open, finger_positions,
+                                 keyframes_done, task, bounds)
+
+    def cloud_inputs(self, cloud: Cloud, instruction: str, gripper_open: bool, finger_positions=(0.04, 0.04),
+                     keyframes_done: int = 0, task: str | None = None, scene_bounds=None) -> PolicyInput:
+        """What the model takes for a cloud fused by the caller (base frame, cropped to the scene bounds)."""
+        bounds = self.scene_bounds(task, scene_bounds)
+        with self._embedding:
+            lang = self.instructions([instruction])[0]
+        return PolicyInput(cloud, bool(gripper_open), np.asarray(finger_positions, np.float32), int(keyframes_done), lang,
+                           bounds, self.aim_offsets.get(self.default_task(task)))
+
     def predict(self, frames: dict[str, CameraFrame], instruction: str, gripper_open: bool, finger_positions=(0.04, 0.04),
                 keyframes_done: int = 0, task: str | None = None, scene_bounds=None,
                 opencv_intrinsics: bool = True) -> Keyframe:
         """The next keyframe, in the frame the camera poses are given in (the robot's base)."""
-        bounds = self.scene_bounds(task, scene_bounds)
-        cloud = self.cloud(frames, bounds, opencv_intrinsics)
-        lang = self.instructions([instruction])[0]
-        return self._predict(cloud, bool(gripper_open), np.asarray(finger_positions, np.float32), int(keyframes_done), lang, bounds,
-                             self.aim_offsets.get(self.default_task(task)))
+        return self.predict_inputs([self.inputs(frames, instruction, gripper_open, finger_positions, keyframes_done, task,
+                                                scene_bounds, opencv_intrinsics)])[0]
 
-    def _predict(self, cloud, gripper_open: bool, fingers, keyframes_done: int, lang, bounds, aim_offset) -> Keyframe:
+    def predict_inputs(self, inputs: list[PolicyInput]) -> list[Keyframe]:
+        """Each input's keyframe (a checkpoint answers them in one forward pass)."""
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        """What was loaded: its kind, path, weights file, model config and the camera rigs it was trained with."""
         raise NotImplementedError
 
 
 class _CheckpointPolicy(KeyframePolicy):
+    kind = "checkpoint"
+
     def __init__(self, path: Path, device: str, stage2_min_points: int | None = None):
-        from rvt2cli.eval.sources import PolicySource
-        from rvt2cli.train.checkpoint import load_policy
+        from rvt2cli.train.checkpoint import WEIGHTS, load_policy
 
-        policy, ckpt = load_policy(path, device=device, stage2_min_points=stage2_min_points)
-        super().__init__({t: ckpt.scene_bounds(t) for t in ckpt.tasks}, policy.cfg.lang_tokens, ckpt.instruction_embeddings,
-                         ckpt.aim_offsets)
-        self.source = PolicySource(policy, ckpt, device)
+        self.policy, self.checkpoint = load_policy(path, device=device, stage2_min_points=stage2_min_points)
+        ckpt = self.checkpoint
+        super().__init__({t: ckpt.scene_bounds(t) for t in ckpt.tasks}, self.policy.cfg.lang_tokens,
+                         ckpt.instruction_embeddings, ckpt.aim_offsets)
+        self.device, self.weights = device, ckpt.path / WEIGHTS
 
-    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds, aim_offset) -> Keyframe:
-        self.source.use(bounds, lang, aim_offset)
-        return self.source.predict(cloud.xyz, cloud.rgb, gripper_open, fingers, keyframes_done)
+    def predict_inputs(self, inputs: list[PolicyInput]) -> list[Keyframe]:
+        from rvt2cli.eval.sources import predict_keyframes
+        from rvt2cli.model.observation import observe
+        from rvt2cli.render.workspace import Workspace
+
+        workspaces = [Workspace.from_bounds(i.bounds) for i in inputs]
+        observations = [observe(i.cloud.xyz, i.cloud.rgb, proprio_vector(i.gripper_open, i.finger_positions, i.keyframes_done),
+                                i.lang, workspace, self.device, i.aim_offset) for i, workspace in zip(inputs, workspaces)]
+        return predict_keyframes(self.policy, observations, workspaces)
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "path": str(self.checkpoint.path), "weights": str(self.weights), "step": self.checkpoint.info.get("step"),
+                "config": self.policy.cfg.to_dict(), "rigs": self.checkpoint.info.get("rigs", {}),
+                "phrasings": self.checkpoint.training_options.get("phrasings")}
 
 
 class _ExportedPolicy(KeyframePolicy):
+    kind = "export"
+
     def __init__(self, folder: Path):
         from safetensors.torch import load_file
 
@@ -125,15 +182,24 @@ class _ExportedPolicy(KeyframePolicy):
                          {t: embeddings[i] for i, t in enumerate(texts)},
                          {t: v["aim_offset"] for t, v in manifest["tasks"].items() if v.get("aim_offset")})
         self.run = load_exported(folder, manifest)
+        self.manifest, self.folder = manifest, folder
         self.max_points = manifest["max_points"]
 
-    def _predict(self, cloud, gripper_open, fingers, keyframes_done, lang, bounds, aim_offset) -> Keyframe:
-        proprio = proprio_vector(gripper_open, fingers, keyframes_done)
-        xyz, rgb, count = fit_points(cloud.xyz, cloud.rgb, self.max_points)
+    def predict_inputs(self, inputs: list[PolicyInput]) -> list[Keyframe]:
+        return [self._predict_one(i) for i in inputs]  # the exported graph takes a batch of one
+
+    def _predict_one(self, i: PolicyInput) -> Keyframe:
+        proprio = proprio_vector(i.gripper_open, i.finger_positions, i.keyframes_done)
+        xyz, rgb, count = fit_points(i.cloud.xyz, i.cloud.rgb, self.max_points)
         position, quaternion, gripper_open, ignore_collisions, _ = self.run(
             torch.from_numpy(xyz)[None], colours(torch.from_numpy(rgb))[None], torch.tensor([count]),
-            torch.from_numpy(proprio)[None], lang[None], torch.tensor(bounds, dtype=torch.float32),
-            torch.tensor(aim_offset_or_tcp(aim_offset), dtype=torch.float32))
+            torch.from_numpy(proprio)[None], i.lang[None], torch.tensor(i.bounds, dtype=torch.float32),
+            torch.tensor(aim_offset_or_tcp(i.aim_offset), dtype=torch.float32))
         return Keyframe.from_pose([*np.asarray(position)[0], *np.asarray(quaternion)[0]], bool(np.asarray(gripper_open)[0] > 0.5),
                                   bool(np.asarray(ignore_collisions)[0] > 0.5))
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "path": str(self.folder), "weights": str(self.folder / self.manifest["file"]),
+                "step": self.manifest.get("step"), "config": self.manifest["config"], "format": self.manifest["format"],
+                "max_points": self.max_points, "rigs": {}, "phrasings": None}
 

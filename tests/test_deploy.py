@@ -81,6 +81,19 @@ def test_exported_folder_predicts_like_the_checkpoint(aimed_checkpoint, onnx_exp
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert np.allclose(json.loads(r.stdout)["position"], exported.position, atol=0.02)
+    # served (rvt2 serve), the export answers a client as it answers here
+    from rvt2_client import PolicyClient
+
+    from rvt2cli.serve.server import open_server
+
+    server = open_server(str(policy_dir)).start_in_thread()
+    try:
+        with PolicyClient(server.url) as client:
+            served = client.predict(*args)
+            assert client.info()["model"]["kind"] == "export"
+    finally:
+        server.stop()
+    assert (served.position, served.quaternion, served.gripper_open) == (exported.position, exported.quaternion, exported.gripper_open)
     # an export from before the aim_offset input is refused in one line, not run with the wrong inputs
     import shutil
 

@@ -144,6 +144,6 @@ def test_an_export_keeps_stage_1s_point_where_the_checkpoint_says_stage_2_saw_to
     from rvt2cli.deploy import KeyframePolicy
     from rvt2cli.errors import UserError
 
-    assert KeyframePolicy.load(blind, stage2_min_points=0).source.policy.cfg.stage2_min_points == 0
+    assert KeyframePolicy.load(blind, stage2_min_points=0).describe()["config"]["stage2_min_points"] == 0
     with pytest.raises(UserError, match="export again with `rvt2 export --stage2-min-points N`"):
         KeyframePolicy.load(tmp_path / "policy", stage2_min_points=0)

@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "rvt2cli.cli.eval",
     "rvt2cli.cli.diagnose",
     "rvt2cli.cli.export",
+    "rvt2cli.cli.serve",
     "rvt2cli.cli.doctor",
 ]
 

@@ -15,6 +15,9 @@ def register(subparsers) -> None:
                     "--offline DEMOS scores the policy's predictions on recorded demos in millimetres, without a simulator.",
     )
     p.add_argument("--checkpoint", help="run folder or checkpoint written by `rvt2 train`")
+    p.add_argument("--policy-url", metavar="URL",
+                   help="instead of --checkpoint: a policy served by `rvt2 serve` (ws://HOST:PORT), called as a robot calls it")
+    p.add_argument("--token-file", metavar="FILE", help="with --policy-url: the file holding the server's shared secret")
     p.add_argument("--offline", nargs="+", metavar="DEMOS", help="score the checkpoint on these recorded episodes (files or folders)")
     p.add_argument("--tasks", type=names, help="comma-separated (default: the checkpoint's training tasks)")
     p.add_argument("--task-set", help="evaluate every task of this named set (e.g. rlbench18; see rvt2 record --list-tasks)")
@@ -29,6 +32,10 @@ def register(subparsers) -> None:
     p.add_argument("--episodes", type=COUNT, default=E.episodes, help=f"per task (default {E.episodes})")
     p.add_argument("--seed", type=SEED, default=E.seed, help=f"first seed (default {E.seed}; demos use 0 upwards)")
     p.add_argument("--workers", type=integer(1, 256), default=E.workers, help="parallel simulator processes, one core each")
+    p.add_argument("--shared-policy", action="store_true",
+                   help="with --workers N: load the checkpoint once, in this process (on --device), and let the N simulator "
+                        "processes ask it for keyframes over the loopback, batched (docs/SERVING.md); default: each worker "
+                        "loads its own copy")
     p.add_argument("--oracle", action="store_true", help="also run the executor on ground-truth keyframes")
     p.add_argument("--demos", nargs="+", metavar="PATH", help="with --oracle: use these recorded demos' keyframes (and seeds)")
     p.add_argument("--instruction", help="evaluate with this phrasing of the instruction instead of the task's")
@@ -77,12 +84,20 @@ def run(args) -> int:
     if len(chosen) > 1:
         raise UserError(f"eval takes one of --paraphrases, --first-phrasing and --instruction; {' and '.join(chosen)} were given")
     tasks = tuple(tasks_of_set(args.task_set)) if args.task_set else args.tasks or ()
+    if args.token_file and not args.policy_url:
+        raise UserError("--token-file goes with --policy-url (the served policy's shared secret)")
+    token = None
+    if args.token_file:
+        from rvt2cli.serve.options import token_from_file
+
+        token = token_from_file(args.token_file)
     opts = EvalOptions(checkpoint=args.checkpoint, tasks=tasks, paraphrases=args.paraphrases, first_phrasing=args.first_phrasing, variations=args.variations, episodes=args.episodes, seed=args.seed,
                        workers=args.workers, oracle=args.oracle, demos=tuple(args.demos or ()), instruction=args.instruction,
                        video=args.video, save_rollouts=args.save_rollouts, keyframe_budget=args.keyframe_budget,
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
                        device=args.device, resume=args.resume, replay=args.replay, insertion_search=args.insertion_search,
-                       stage2_min_points=args.stage2_min_points)
+                       stage2_min_points=args.stage2_min_points, policy_url=args.policy_url, token=token,
+                       shared_policy=args.shared_policy)
     bars = []
 
     def on_start(total):
@@ -129,8 +144,8 @@ def run_offline(args) -> int:
     from rvt2cli.errors import UserError
     from rvt2cli.eval.offline import evaluate_offline, headline_line
 
-    if not args.checkpoint:
-        raise UserError("eval --offline needs --checkpoint")
+    if not args.checkpoint or args.policy_url:
+        raise UserError("eval --offline needs --checkpoint (it scores a checkpoint loaded here, not a served policy)")
     words = _word_options(args)
     if words:
         raise UserError(f"eval --offline scores each demo under the words its checkpoint was trained to read; {words[0]} "

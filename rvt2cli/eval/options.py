@@ -1,6 +1,6 @@
 """What `rvt2 eval` runs: its options, kept apart from the simulator so the CLI can show defaults cheaply."""
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 MAX_REPLANS = 3  # re-predictions after an unreachable keyframe, in a row, before an episode gives up
 # An episode ends after `keyframe_budget` keyframes (RLBench's 25, the paper's measure) or after this many
@@ -35,6 +35,14 @@ class EvalOptions:
     replay: str | None = None         # a recorded evaluation's journal: its policy keyframes instead of a checkpoint's
     insertion_search: bool = True     # search for the hole where an insertion stops at a face (rvt2cli.eval.search)
     stage2_min_points: int | None = None  # overrides the checkpoint's (ModelConfig.stage2_min_points)
+    policy_url: str | None = None     # a policy served by `rvt2 serve` instead of a checkpoint loaded here
+    token: str | None = field(default=None, repr=False)  # the served policy's shared secret (never in a journal)
+    shared_policy: bool = False       # one copy of the checkpoint in the main process answers every worker
+
+    @property
+    def policy(self) -> str | None:
+        """Where the policy's keyframes come from: the checkpoint, or the served policy's URL."""
+        return self.checkpoint or self.policy_url
 
     def plan(self, checkpoint_path: str | None) -> dict:
         """The options that decide which episodes run and how: a resumed evaluation must keep them."""

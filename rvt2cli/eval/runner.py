@@ -5,12 +5,13 @@ Every finished episode goes into the journal at once (`rvt2cli.eval.journal`): a
 process costs the episodes it was running, not the finished ones, and `--resume` runs the rest.
 """
 
+import contextlib
 import itertools
 import time
 import warnings
 from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from rvt2cli.atomic import ensure_folder
@@ -60,6 +61,11 @@ class _Worker:
             policy, ckpt = load_policy(opts.checkpoint, device=opts.device, stage2_min_points=opts.stage2_min_points)
             self.policy = PolicySource(policy, ckpt, opts.device)
             self.rigs = ckpt.info.get("rigs", {})
+        if opts.policy_url:
+            from rvt2cli.eval.sources import RemotePolicySource
+
+            self.policy = RemotePolicySource(opts.policy_url, opts.token)
+            self.rigs = self.policy.info.get("rigs", {})
 
     def env(self, task):
         """The task's scene, observed with the camera rig the policy's training demos were recorded with."""
@@ -136,7 +142,7 @@ def plan_jobs(opts: EvalOptions, checkpoint_tasks: list[str], demos: dict,
             return Job(source, name, seed, episode_variation(seed, choices[name]))
 
         demo_seeds = sorted(seed for task, seed in demos if task == name)
-        if opts.checkpoint:
+        if opts.policy:
             jobs += [job("policy", s) for s in range(opts.seed, opts.seed + opts.episodes)]
         if replayed is not None:
             jobs += [job("policy", s) for s in sorted(replayed.get(name, ()))
@@ -157,7 +163,7 @@ def _demo_variation(path: str) -> int:
 
 def untrained_tasks(opts: EvalOptions, checkpoint_tasks: list[str]) -> list[str]:
     """Tasks asked for that the checkpoint never saw (allowed: a generalisation test; said once)."""
-    if not opts.checkpoint:
+    if not opts.policy:
         return []
     return [t for t in opts.tasks if t not in checkpoint_tasks]
 
@@ -171,10 +177,18 @@ def search_grids(task_names) -> dict:
 def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     """Run every job not yet in the journal; `on_start(number_of_episodes)` once the inputs are checked,
     `on_outcome(job, outcome, finished)` after each episode (the CLI's progress bar)."""
-    if not opts.checkpoint and not opts.oracle and not opts.replay:
-        raise UserError("eval needs --checkpoint (and/or --oracle)")
-    if opts.checkpoint and opts.replay:
+    if not opts.policy and not opts.oracle and not opts.replay:
+        raise UserError("eval needs --checkpoint or --policy-url (and/or --oracle)")
+    if opts.checkpoint and opts.policy_url:
+        raise UserError("eval takes --checkpoint or --policy-url, not both: --policy-url runs a policy served by `rvt2 serve`")
+    if opts.policy and opts.replay:
         raise UserError("eval takes --checkpoint or --replay, not both: --replay runs a recorded evaluation's keyframes")
+    if opts.shared_policy and (not opts.checkpoint or opts.workers < 2):
+        raise UserError("--shared-policy loads --checkpoint once, in this process, for the --workers processes to share; "
+                        "give --checkpoint and --workers 2 or more")
+    if opts.policy_url and (opts.device != "cpu" or opts.stage2_min_points is not None):
+        raise UserError("--device and --stage2-min-points set up a checkpoint loaded here; a served policy (--policy-url) "
+                        "runs as `rvt2 serve` was started")
     checkpoint_tasks, checkpoint_path, replayed = [], None, None
     if opts.replay:
         from rvt2cli.eval.journal import read_journal
@@ -189,11 +203,9 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
         if not replayed:
             raise UserError(f"{journal_path}: no policy episodes to replay")
         checkpoint_tasks, checkpoint_path = sorted(replayed), f"replay of {journal_path}"
-    if opts.checkpoint:
-        from rvt2cli.train.checkpoint import load_policy
-
-        _, ckpt = load_policy(opts.checkpoint)  # refuses missing, foreign or damaged checkpoints before any work
-        checkpoint_tasks, checkpoint_path = ckpt.tasks, str(ckpt.path)
+    if opts.policy:
+        trained = _policy_description(opts)  # refuses missing, foreign or damaged checkpoints, unreachable servers
+        checkpoint_tasks, checkpoint_path = trained["tasks"], trained["path"]
     demos = _demo_seeds(opts.demos) if opts.demos else {}
     jobs = plan_jobs(opts, checkpoint_tasks, demos, replayed)
     untrained = untrained_tasks(opts, checkpoint_tasks)
@@ -201,16 +213,17 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
         warnings.warn(f"task(s) {', '.join(untrained)} not in the checkpoint's training set "
                       f"({', '.join(checkpoint_tasks)}); evaluating anyway (noted in the report)")
     driver = use_vulkan_driver()  # chosen (and probed) once the inputs are checked; worker processes inherit the choice
-    if opts.checkpoint:
-        trained = sorted({rig["renderer"] for rig in ckpt.info.get("rigs", {}).values() if rig.get("renderer")})
-        if trained and driver.name not in trained:
-            warnings.warn(f"the checkpoint's demos were rendered by {' and '.join(trained)}, this evaluation renders with "
+    if opts.policy:
+        rigs = trained["rigs"]
+        renderers = sorted({rig["renderer"] for rig in rigs.values() if rig.get("renderer")})
+        if renderers and driver.name not in renderers:
+            warnings.warn(f"the checkpoint's demos were rendered by {' and '.join(renderers)}, this evaluation renders with "
                           f"{driver.name}: a policy acts differently under another renderer (docs/RESULTS.md, \"Renderer\"); "
-                          f"set RVT2_VULKAN={trained[0]} to evaluate under the demos' renderer")
-        if ckpt.training_options.get("phrasings") == "first" and not (opts.first_phrasing or opts.instruction):
+                          f"set RVT2_VULKAN={renderers[0]} to evaluate under the demos' renderer")
+        if trained["phrasings"] == "first" and not (opts.first_phrasing or opts.instruction):
             warnings.warn("the checkpoint was trained on each variation's first phrasing alone (--phrasings first); "
                           "this evaluation instructs with other phrasings too: give --first-phrasing to evaluate as it was trained")
-        drawn = {rig.get("robot_visuals") or "ManiSkill's full meshes" for rig in ckpt.info.get("rigs", {}).values() if rig.get("renderer")}
+        drawn = {rig.get("robot_visuals") or "ManiSkill's full meshes" for rig in rigs.values() if rig.get("renderer")}
         if drawn - {ROBOT_VISUALS}:
             warnings.warn(f"the checkpoint's demos drew the Panda with {' and '.join(sorted(drawn))}; this evaluation draws "
                           f"{ROBOT_VISUALS}: the arm's outline differs by a pixel here and there")
@@ -235,13 +248,13 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
                 "paraphrases": opts.paraphrases, "first_phrasing": opts.first_phrasing, "variations": opts.variations,
                 "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
                 "search_grids": search_grids(sorted({job.task for job in jobs})) if opts.insertion_search else {},
-                "untrained_tasks": untrained, "seconds": time.perf_counter() - start}
+                "untrained_tasks": untrained, "shared_policy": opts.shared_policy, "seconds": time.perf_counter() - start}
         result = build_report(journal.records, meta)
         write_report(result, out_dir)
         return result
 
     try:
-        _run_jobs(opts, demos, todo, done)
+        _run_jobs(opts, demos, todo, done, driver.name)
     except BrokenProcessPool as e:
         report()
         raise UserError(f"a simulator process died ({e}); the {len(journal.records)} finished episodes are kept in "
@@ -250,7 +263,27 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     return EvalResult(out_dir=out_dir, report=report(), outcomes=finished)
 
 
-def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
+def _policy_description(opts: EvalOptions) -> dict:
+    """What the evaluated policy was trained on: its tasks, where it is (the journal's "checkpoint"), the camera
+    rigs of its demos and its phrasings; from the checkpoint, or from the server (`rvt2 serve`'s health document)."""
+    if opts.checkpoint:
+        from rvt2cli.train.checkpoint import load_policy
+
+        _, ckpt = load_policy(opts.checkpoint)
+        return {"tasks": ckpt.tasks, "path": str(ckpt.path), "rigs": ckpt.info.get("rigs", {}),
+                "phrasings": ckpt.training_options.get("phrasings")}
+    from rvt2_client import PolicyClient
+
+    from rvt2cli.eval.sources import served_policy
+
+    with PolicyClient(opts.policy_url, token=opts.token) as client:
+        info = served_policy(client)
+    model = info["model"]
+    return {"tasks": list(info["tasks"]), "path": f"{model['path']} (served, sha256 {model['sha256']})",
+            "rigs": info.get("rigs", {}), "phrasings": info.get("phrasings")}
+
+
+def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done, renderer: str = "lavapipe") -> None:
     if not jobs:
         return
     if opts.workers <= 1:
@@ -265,13 +298,40 @@ def _run_jobs(opts: EvalOptions, demos: dict, jobs: list[Job], done) -> None:
         finally:
             torch.set_num_threads(threads)
         return
-    # a worker may take whichever GPU it is given unless the policy's device names one ("cuda:1")
-    with worker_pool(opts.workers, _init, (opts, demos), gpus="all" if opts.device.startswith("cuda:") else "one") as pool:
-        pending = {pool.submit(_run, job): job for job in jobs}
-        while pending:
-            completed, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for future in completed:
-                done(pending.pop(future), future.result())
+    with _policy_for_workers(opts) as worker_opts:
+        if worker_opts.policy_url and renderer == "lavapipe":
+            gpus = "none"   # the workers render on the CPU and hold no policy: they need no GPU (no CUDA context each)
+        else:  # a worker may take whichever GPU it is given unless the policy's device names one ("cuda:1")
+            gpus = "all" if opts.device.startswith("cuda:") else "one"
+        with worker_pool(opts.workers, _init, (worker_opts, demos), gpus=gpus) as pool:
+            pending = {pool.submit(_run, job): job for job in jobs}
+            while pending:
+                completed, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for future in completed:
+                    done(pending.pop(future), future.result())
+
+
+@contextlib.contextmanager
+def _policy_for_workers(opts: EvalOptions):
+    """The options the worker processes run with. By default each loads the checkpoint itself (on --device:
+    a copy of the policy, and a CUDA context, per worker). With --shared-policy the checkpoint is loaded once,
+    here, and served to the workers on the loopback by `rvt2 serve`'s server in a thread (a token of this run
+    alone); its batcher answers the keyframe requests that arrive together in one forward pass."""
+    if not opts.shared_policy:
+        yield opts
+        return
+    import secrets
+
+    from rvt2cli.serve.options import ServeOptions
+    from rvt2cli.serve.server import open_server
+
+    token = secrets.token_urlsafe(32)
+    server = open_server(opts.checkpoint, opts.device, ServeOptions(port=0, token=token, max_batch=opts.workers),
+                         opts.stage2_min_points).start_in_thread()
+    try:
+        yield replace(opts, checkpoint=None, policy_url=server.url, token=token, device="cpu", stage2_min_points=None)
+    finally:
+        server.stop()
 
 
 def _save_media(opts: EvalOptions, out_dir: Path, job: Job, outcome: Outcome) -> None:

@@ -5,11 +5,12 @@ import torch
 
 from rvt2cli.data import read_episode
 from rvt2cli.data.keyframes import Keyframe
+from rvt2cli.errors import UserError
 from rvt2cli.eval.rollout import KeyframeSource
 from rvt2cli.keyframes.extract import annotate, label_keyframes
 from rvt2cli.keyframes.rule import KeyframeParams
 from rvt2cli.model.language import InstructionCache
-from rvt2cli.model.observation import Observation, observe, proprio_vector
+from rvt2cli.model.observation import Observation, observe, proprio_vector, stack_observations
 from rvt2cli.model.rotation import yaw_rotate_quaternion
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.record.expert import run_expert
@@ -36,8 +37,45 @@ def expert_keyframes(env, task: Task, seed: int, params: KeyframeParams = Keyfra
                                 [f.state["tcp_pose"] for f in frames], params, [f.near for f in frames])
 
 
-class PolicySource(KeyframeSource):
-    """The trained policy: cloud + instruction + proprio -> next keyframe."""
+def predict_keyframes(policy, observations: list[Observation], workspaces: list[Workspace]) -> list[Keyframe]:
+    """The policy's keyframe for each observation, in one forward pass, mapped to the world through each
+    one's workspace."""
+    pred = policy.predict(stack_observations(observations))
+    return [Keyframe.from_pose([*workspace.to_world(pred.position[i].double().cpu()).numpy(),
+                                *pred.quaternion[i].double().cpu().numpy()],
+                               bool(pred.gripper_open[i]), bool(pred.ignore_collisions[i]))
+            for i, workspace in enumerate(workspaces)]
+
+
+class PredictingSource(KeyframeSource):
+    """A source that predicts the next keyframe from the observation (`predict`), in the scene cube of
+    `workspace`; asked again after an unreachable keyframe, it predicts from a seeded, perturbed
+    observation and undoes the perturbation on the prediction."""
+
+    workspace: Workspace
+    seed: int = 0
+
+    def predict(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Keyframe:
+        raise NotImplementedError
+
+    def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry: int = 0) -> Keyframe:
+        if retry == 0:
+            return self.predict(cloud.xyz, cloud.rgb, gripper_open, finger_positions, keyframes_done)
+        # a seeded perturbation of the observation, undone on the prediction
+        g = np.random.default_rng([self.seed, keyframes_done, retry])
+        yaw = np.radians(g.uniform(-REPLAN_YAW_DEG, REPLAN_YAW_DEG))
+        shift = g.uniform(-REPLAN_SHIFT_M, REPLAN_SHIFT_M, size=3)
+        center = np.asarray(self.workspace.center)
+        turn = yaw_matrices(np.array([yaw]))[0]
+        xyz = ((cloud.xyz - center) @ turn.T + center + shift).astype(np.float32)
+        seen = self.predict(xyz, cloud.rgb, gripper_open, finger_positions, keyframes_done)
+        position = (np.asarray(seen.position) - shift - center) @ turn + center
+        quaternion = yaw_rotate_quaternion(np.asarray(seen.quaternion), np.array([-yaw]))[0]
+        return Keyframe.from_pose([*position, *quaternion], seen.gripper_open, seen.ignore_collisions)
+
+
+class PolicySource(PredictingSource):
+    """The trained policy, in this process: cloud + instruction + proprio -> next keyframe."""
 
     def __init__(self, policy, checkpoint, device="cpu"):
         self.policy, self.device = policy, torch.device(device)
@@ -61,25 +99,57 @@ class PolicySource(KeyframeSource):
                        self.workspace, self.device, self.aim_offset)
 
     def predict(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Keyframe:
-        pred = self.policy.predict(self.observation(xyz, rgb, gripper_open, finger_positions, keyframes_done))
-        position = self.workspace.to_world(pred.position[0].double().cpu()).numpy()
-        quaternion = pred.quaternion[0].double().cpu().numpy()
-        return Keyframe.from_pose([*position, *quaternion], bool(pred.gripper_open[0]), bool(pred.ignore_collisions[0]))
+        return predict_keyframes(self.policy, [self.observation(xyz, rgb, gripper_open, finger_positions, keyframes_done)],
+                                 [self.workspace])[0]
 
-    def next(self, cloud, gripper_open, finger_positions, keyframes_done, retry: int = 0) -> Keyframe:
-        if retry == 0:
-            return self.predict(cloud.xyz, cloud.rgb, gripper_open, finger_positions, keyframes_done)
-        # a seeded perturbation of the observation, undone on the prediction
-        g = np.random.default_rng([self.seed, keyframes_done, retry])
-        yaw = np.radians(g.uniform(-REPLAN_YAW_DEG, REPLAN_YAW_DEG))
-        shift = g.uniform(-REPLAN_SHIFT_M, REPLAN_SHIFT_M, size=3)
-        center = np.asarray(self.workspace.center)
-        turn = yaw_matrices(np.array([yaw]))[0]
-        xyz = ((cloud.xyz - center) @ turn.T + center + shift).astype(np.float32)
-        seen = self.predict(xyz, cloud.rgb, gripper_open, finger_positions, keyframes_done)
-        position = (np.asarray(seen.position) - shift - center) @ turn + center
-        quaternion = yaw_rotate_quaternion(np.asarray(seen.quaternion), np.array([-yaw]))[0]
-        return Keyframe.from_pose([*position, *quaternion], seen.gripper_open, seen.ignore_collisions)
+
+class RemotePolicySource(PredictingSource):
+    """A policy served by `rvt2 serve`, called over the network with `rvt2_client` as a robot calls it: the
+    cloud, the instruction and the gripper's state go out, the keyframe comes back. The server answers what
+    `PolicySource` answers in this process (the same checkpoint, the same scene bounds and aim)."""
+
+    def __init__(self, url: str, token: str | None = None):
+        from rvt2_client import PolicyClient
+
+        self.client = PolicyClient(url, token=token)
+        self.info = served_policy(self.client)
+
+    def reset(self, task: Task, seed: int, instruction: str) -> None:
+        self.task, self.instruction, self.seed = task.name, instruction, seed
+        self.bounds = scene_bounds_of(self.info, task)
+        self.workspace = Workspace.from_bounds(self.bounds)
+
+    def predict(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Keyframe:
+        from rvt2_client import PolicyError
+
+        try:
+            got = self.client.predict_cloud(xyz, rgb, self.instruction, bool(gripper_open), finger_positions,
+                                            int(keyframes_done), task=self.task, scene_bounds=self.bounds)
+        except PolicyError as e:
+            raise UserError(f"{self.client.url} refused the episode's request: {e}") from None
+        except (ConnectionError, TimeoutError) as e:
+            raise UserError(f"{e}; the finished episodes are kept: run the same command with --resume once the "
+                            "server is back") from None
+        return Keyframe.from_pose([*got.position, *got.quaternion], got.gripper_open, got.ignore_collisions)
+
+
+def served_policy(client) -> dict:
+    """A served policy's description (GET /healthz's document), or one line saying why it cannot be had."""
+    from rvt2_client import PolicyError
+
+    try:
+        return client.info()
+    except (ConnectionError, TimeoutError) as e:
+        raise UserError(f"{e}") from None
+    except PolicyError as e:
+        raise UserError(f"{client.url} refused: {e}" + ("; give --token-file" if e.field == "token" else "")) from None
+
+
+def scene_bounds_of(info: dict, task: Task) -> list[float]:
+    """The bounds a served policy observes `task` within: those it was trained with, else the task's own
+    (as `Checkpoint.scene_bounds`)."""
+    trained = info.get("tasks", {}).get(task.name)
+    return list(trained["scene_bounds"]) if trained else list(task.scene_bounds)
 
 
 class ReplaySource(KeyframeSource):

@@ -106,3 +106,24 @@ def observe(xyz: np.ndarray, rgb: np.ndarray, proprio: np.ndarray, lang: torch.T
                        num_points=torch.tensor([len(xyz)], device=device),
                        proprio=torch.from_numpy(proprio).to(device)[None],
                        lang=lang.to(device).reshape(1, *lang.shape[-2:]), aim=aim)
+
+
+def stack_observations(observations: list[Observation]) -> Observation:
+    """Observations of one each as one batch: every cloud padded with zero rows to the largest (its
+    `num_points` keeps its own count), and zeros (the TCP) as the aim of those without one where others
+    have one. The policy answers each as it answers it alone (exactly, on the CPU: tests/test_serve.py)."""
+    if len(observations) == 1:
+        return observations[0]
+    rows = max(o.points.shape[1] for o in observations)
+
+    def padded(t: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.pad(t, (0, 0, 0, rows - t.shape[1]))
+
+    aims = None
+    if any(o.aim is not None for o in observations):
+        aims = torch.cat([o.proprio.new_zeros(1, 3) if o.aim is None else o.aim for o in observations])
+    return Observation(points=torch.cat([padded(o.points) for o in observations]),
+                       rgb=torch.cat([padded(o.rgb) for o in observations]),
+                       num_points=torch.cat([o.num_points for o in observations]),
+                       proprio=torch.cat([o.proprio for o in observations]),
+                       lang=torch.cat([o.lang for o in observations]), aim=aims)

@@ -17,13 +17,15 @@
 #
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
-# building blocks of the benchmarks: bench, record, keyframes, merged, heldout, train, loopbench, memorybench, ddpbench,
-# eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile, evalprofile, capturetests.
+# building blocks of the benchmarks: bench, servebench, evalsharebench, record, keyframes, merged, heldout, train,
+# loopbench, memorybench, ddpbench, eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile,
+# evalprofile, capturetests.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
-# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, MEMORYBENCH_ARGS, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results);
+# RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, MEMORYBENCH_ARGS, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results),
+# SHARE_EPISODES (per task) and SHARE_KEYFRAMES (the keyframe budget) for evalsharebench;
 # EXACT=1: `weights` sends float32 weights as trained (an evaluation to be resumed elsewhere: 25 pieces for rvt2-18);
 # RESUMABLE=1: also the training state and the run's logs (a training stopped by --time-limit, resumed elsewhere).
 set -euo pipefail
@@ -134,6 +136,17 @@ PY
     python3 -m benchmarks.policy_bench --configs rvt2 --batch "24,$BATCH" --compile --skip-inference --steps 15 \
       --json "$OUT/policy_bench.json" 2>&1 | tail -6
     phase bench $(( $(clock) - t ))
+    ;;
+  servebench)  # rvt2 serve under 1, 4 and 16 client processes, with and without batching (benchmarks/serve_bench.py)
+    t=$(clock)
+    python3 -m benchmarks.serve_bench --device "$DEVICE" --config "$CONFIG" ${SERVEBENCH_ARGS:-} --json "$W/serve_bench.json" 2>&1 | tail -12
+    phase servebench $(( $(clock) - t ))
+    ;;
+  evalsharebench)  # an evaluation's WORKERS sharing one policy (--shared-policy) against one each (benchmarks/eval_share_bench.py)
+    t=$(clock)
+    python3 -m benchmarks.eval_share_bench --random "$CONFIG" --tasks "$(echo $TASKS | tr ' ' ,)" --episodes "${SHARE_EPISODES:-2}" \
+      --workers "$WORKERS" --device "$DEVICE" --keyframe-budget "${SHARE_KEYFRAMES:-10}" --json "$W/eval_share_bench.json" 2>&1 | tail -4
+    phase evalsharebench $(( $(clock) - t ))
     ;;
   record)
     t=$(clock)
@@ -309,7 +322,7 @@ PY
     ;;
   results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
-    files=(phases.tsv record_bench_*.json capture_bench.json record_profile_*.json eval_profile.json capture_tests.txt memory_bench.json memory_bench.log ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+    files=(phases.tsv record_bench_*.json capture_bench.json record_profile_*.json eval_profile.json capture_tests.txt memory_bench.json memory_bench.log serve_bench.json eval_share_bench.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
       e=$(basename "$EXPERIMENT" .toml)
@@ -344,7 +357,7 @@ print("\n".join(all_pieces(json.load(open(sys.argv[1])))))' "$W/export/$RUN/mani
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile|capturetests" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile|capturetests|servebench|evalsharebench" >&2
     exit 2
     ;;
   esac

@@ -20,7 +20,7 @@ WHEELS=(
   mcap==1.6.0 mcap-protobuf-support==0.6.0 foxglove-schemas-protobuf==0.4.0 zstandard==0.25.0
   rosbags==0.11.9 apsw==3.54.1.0 backports.zstd==1.8.0 ruamel.yaml==0.19.1 lz4==4.4.5
   jsonschema==4.26.0 fastjsonschema==2.22.3 jsonschema-specifications==2025.9.1 referencing==0.37.0 rpds-py==2026.9.1
-  warp-lang==1.19.0 scipy==1.17.1
+  warp-lang==1.19.0 scipy==1.17.1 websockets==16.1.1 msgpack==1.2.4
   ipython==9.18.1 ipython_pygments_lexers==1.1.1 asttokens==3.0.2 decorator==5.3.1 executing==2.3.0 jedi==0.20.1
   matplotlib_inline==0.2.2 parso==0.8.7 pexpect==4.9.0 prompt_toolkit==3.0.53 ptyprocess==0.7.0 pure_eval==0.2.4
   stack_data==0.6.3 traitlets==5.16.1 wcwidth==0.9.4
