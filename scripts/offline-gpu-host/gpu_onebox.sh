@@ -194,11 +194,12 @@ PY
       --workers "$WORKERS" --out "$W/eval_replay" --no-progress 2>&1 | tail -5
     phase replay $(( $(clock) - t ))
     ;;
-  recordbench)  # recording's cost: EPISODES successful demos of every task of TASK_SET, WORKERS workers (RECORDBENCH_CAPTURE)
+  recordbench)  # recording's cost: EPISODES successful demos of every task of TASK_SET, WORKERS workers, for each capture path of RECORDBENCH_CAPTURES
     t=$(clock)
-    capture=${RECORDBENCH_CAPTURE:-${RVT2_CAPTURE:-auto}}   # auto: a camera group where CUDA renders; cameras: one by one
-    RVT2_CAPTURE=$capture python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --seeds 0 --episodes "$EPISODES" \
-      --workers "$WORKERS" --json "$W/record_bench_${TASK_SET:-rlbench18}_$capture.json" 2>&1 | tail -3
+    for capture in ${RECORDBENCH_CAPTURES:-${RVT2_CAPTURE:-auto}}; do   # auto: a camera group where CUDA renders; cameras: one by one
+      RVT2_CAPTURE=$capture python3 -m benchmarks.record_bench --task-set "${TASK_SET:-rlbench18}" --seeds 0 --episodes "$EPISODES" \
+        --workers "$WORKERS" --json "$W/record_bench_${TASK_SET:-rlbench18}_$capture.json" 2>&1 | tail -3
+    done
     phase recordbench $(( $(clock) - t ))
     ;;
   capturebench)  # the cameras' capture: capture_cameras against SAPIEN's camera groups, 1 and many processes
