@@ -88,6 +88,15 @@ class CameraGroup:
                 shape.set_gpu_pose_batch_index(row)
         self.names = [list(env.rvt2_cameras) for env in envs]
         self.sensors = [[u.scene.sensors[name] for name in names] for u, names in zip(self.envs, self.names)]
+        # a camera riding on a body (the wrist's, on the hand) takes its pose from that body's row too: the
+        # group does not see the CPU side's camera poses once it renders
+        entities = [body.entity for body in self.bodies]   # kept: SAPIEN hands out one Python object per entity while it lives
+        for own in self.sensors:
+            for sensor in own:
+                camera = sensor.camera._render_cameras[0]
+                row = next((row for row, entity in enumerate(entities) if entity is camera.entity), None)
+                if row is not None:
+                    camera.set_gpu_pose_batch_index(row)
         self.group = sapien.render.RenderSystemGroup(systems)
         self.cameras = self.group.create_camera_group([s.camera._render_cameras[0] for own in self.sensors for s in own],
                                                       list(TEXTURES))
