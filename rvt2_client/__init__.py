@@ -12,8 +12,16 @@ It needs numpy, msgpack and websockets (`pip install ./rvt2_client` from the rvt
 format is in `rvt2_client.wire`, the robot-side loop in rvt2's docs/REAL_ROBOT.md ("Serving").
 """
 
-from rvt2_client.client import Keyframe, PolicyClient, PolicyError
 from rvt2_client.wire import DEFAULT_PORT, PROTOCOL
 
 __all__ = ["DEFAULT_PORT", "PROTOCOL", "Keyframe", "PolicyClient", "PolicyError"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    """The client's names, imported on first use: the wire format alone (`rvt2 serve`'s defaults) needs no websockets."""
+    if name in ("Keyframe", "PolicyClient", "PolicyError"):
+        from rvt2_client import client
+
+        return getattr(client, name)
+    raise AttributeError(f"module 'rvt2_client' has no attribute {name!r}")

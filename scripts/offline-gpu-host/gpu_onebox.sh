@@ -323,7 +323,8 @@ PY
     ;;
   results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
-    files=(phases.tsv record_bench_*.json capture_bench.json record_profile_*.json eval_profile.json capture_tests.txt memory_bench.json memory_bench.log serve_bench.json eval_share_bench.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+    # the patterns are matched in $W below, not here
+    files=(phases.tsv "record_bench_*.json" capture_bench.json "record_profile_*.json" eval_profile.json capture_tests.txt memory_bench.json memory_bench.log serve_bench.json eval_share_bench.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
       e=$(basename "$EXPERIMENT" .toml)
@@ -337,7 +338,8 @@ PY
               "eval_$run/eval.md" "eval_$run/episodes.jsonl" "offline_$run/offline.json" "offline_$run/offline.md"
               "eval_${run}_repro/compare.txt" "eval_${run}_repro/episodes.jsonl")
     done
-    (cd "$W" && { ls -d "${files[@]}" 2>/dev/null || true; } | tar -czf "$OUT/results.tgz" -T -)
+    # shellcheck disable=SC2068  # unquoted: the patterns expand among $W's files
+    (cd "$W" && { ls -d ${files[@]} 2>/dev/null || true; } | tar -czf "$OUT/results.tgz" -T -)
     tar -tzf "$OUT/results.tgz"
     cp "$OUT/results.tgz" "$W/" 2>/dev/null || true
     ls -l "$OUT"
