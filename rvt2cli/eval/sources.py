@@ -84,15 +84,12 @@ class PolicySource(PredictingSource):
         self.instructions = InstructionCache(self.cfg.lang_tokens, checkpoint.instruction_embeddings)
 
     def reset(self, task: Task, seed: int, instruction: str) -> None:
-        self.use(self.checkpoint.scene_bounds(task.name), self.instructions([instruction])[0],
-                 self.checkpoint.aim_offset(task.name))
+        """Observe the task's scene within the bounds it was trained with, for this instruction, aiming the
+        task's aim offset once the gripper holds (a policy trained with one)."""
+        self.workspace = Workspace.from_bounds(self.checkpoint.scene_bounds(task.name))
+        self.lang = self.instructions([instruction])[0]
+        self.aim_offset = self.checkpoint.aim_offset(task.name)
         self.seed = seed
-
-    def use(self, scene_bounds, lang: torch.Tensor, aim_offset=None) -> None:
-        """Observe the scene within these bounds, for this instruction's embedding [L, LANG_DIM], aiming
-        `aim_offset` once the gripper holds (a policy trained with one)."""
-        self.workspace = Workspace.from_bounds(scene_bounds)
-        self.lang, self.aim_offset = lang, aim_offset
 
     def observation(self, xyz, rgb, gripper_open, finger_positions, keyframes_done) -> Observation:
         return observe(xyz, rgb, proprio_vector(gripper_open, finger_positions, keyframes_done), self.lang,

@@ -22,7 +22,8 @@ from rvt2cli.data import CameraFrame
 
 CHOICE_VARIABLE = "RVT2_CAPTURE"   # auto (default): a camera group where SAPIEN renders through CUDA | cameras
 TEXTURES = ("Color", "Position", "Segmentation")
-HIDDEN_FAR = 1.0e5   # m: where a hidden body's transform is put (visibility alone is a CPU-side setting)
+HIDDEN_FAR = 1.0e5   # m: where a hidden body's transform is put, so it is out of view whether or not the group
+                     # honours its visibility (ManiSkill's GPU simulation hides bodies the same way)
 log = logging.getLogger(__name__)
 
 
@@ -153,8 +154,8 @@ def camera_group(env) -> CameraGroup | None:
     u = env.unwrapped
     if _group_failed or choice == "cameras" or u.scene.backend.render_backend != "sapien_cuda":
         return None
-    group = getattr(u, "_rvt2_camera_group", None)
-    if group is None or group.scenes[0] is not u.scene.sub_scenes[0]:
+    group = _current_group(u)
+    if group is None:
         u._rvt2_camera_group = None   # the last scene's group goes before the new one is made
         try:
             group = CameraGroup([env])
@@ -166,6 +167,12 @@ def camera_group(env) -> CameraGroup | None:
     return group
 
 
+def _current_group(u) -> CameraGroup | None:
+    """The group made for this env's current scene, if any (ManiSkill builds a new scene at each reset)."""
+    group = getattr(u, "_rvt2_camera_group", None)
+    return group if group is not None and group.scenes[0] is u.scene.sub_scenes[0] else None
+
+
 def capture_path(env) -> str:
     """How this env's cameras are captured: "camera-group" or "camera-by-camera" (recorded in episodes)."""
     return "camera-group" if camera_group(env) is not None else "camera-by-camera"
@@ -174,7 +181,7 @@ def capture_path(env) -> str:
 def video_frame(env) -> np.ndarray:
     """The env's video camera at the current state (`env.render()`), with the render transforms a camera
     group uses brought up to date first: the group's scene takes them from the GPU, not from the CPU."""
-    group = getattr(env.unwrapped, "_rvt2_camera_group", None)
-    if group is not None and group.scenes[0] is env.unwrapped.scene.sub_scenes[0]:
+    group = _current_group(env.unwrapped)
+    if group is not None:
         group.update_transforms()
     return np.asarray(env.render()[0].cpu().numpy(), dtype=np.uint8)
