@@ -20,6 +20,10 @@ other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
     offline   each run's precision in millimetres on the held-out demos
     oracle    the expert's own keyframes through the same executor, on the evaluation seeds
 
+With `alongside_training = ["heldout", "oracle"]` those phases, which need only the cores, run while the GPU
+trains (one machine: its cores are idle while samples on the GPU train), with two workers fewer, left to the
+training; the eval phase waits for both.
+
     python -m benchmarks.experiment experiments/rvt2_25demos.toml                    # print every command
     python -m benchmarks.experiment rvt2_10demos --run --phase train,eval --gpus 2   # some phases, 2 GPUs
     python -m benchmarks.experiment rvt2_25demos --run --out data/h --rvt2 "python3 -m rvt2cli"
@@ -33,6 +37,7 @@ import os
 import shlex
 import subprocess
 import sys
+import threading
 import time
 import tomllib
 from dataclasses import dataclass
@@ -50,7 +55,8 @@ CONCURRENT_PHASES = {"eval"}  # its commands run at the same time (`commands` sh
 
 # The keys an experiment file may have, per table; anything else is a typo the user should hear about.
 SCHEMA = {
-    "": {"name", "summary", "renderer", "tasks", "record", "heldout", "train", "eval", "oracle", "published"},
+    "": {"name", "summary", "renderer", "tasks", "alongside_training", "record", "heldout", "train", "eval", "oracle",
+         "published"},
     "record": {"demos_per_task", "first_seed", "merge_refinements_mm", "hold_out_variations", "experts"},
     "heldout": {"tasks", "demos_per_task", "first_seed"},
     "train": {"config", "seeds", "steps", "batch_size", "options"},
@@ -60,6 +66,8 @@ SCHEMA = {
     "published": {"results", "raw", "machine", "notes"},
 }
 RENDERERS = ("auto", "nvidia", "lavapipe")  # RVT2_VULKAN's choices: every phase renders with the file's
+ALONGSIDE = ("heldout", "oracle")  # the phases that may run while the GPU trains: they need no trained model
+CORES_FOR_TRAINING = 2  # the workers a phase alongside training leaves to the training's own processes
 REQUIRED = {"record": "demos_per_task", "heldout": "demos_per_task", "train": "steps", "eval": "episodes_per_task",
             "oracle": "episodes_per_task"}
 
@@ -122,6 +130,9 @@ def load(path: Path) -> dict:
     if set(experts) - set(experiment.get("tasks", [])):
         raise UserError(f"{path}: [record] experts names {sorted(set(experts) - set(experiment['tasks']))[0]!r}, "
                         "which is not among the file's tasks")
+    alongside = experiment.get("alongside_training", [])
+    if not isinstance(alongside, list) or set(alongside) - set(ALONGSIDE):
+        raise UserError(f"{path}: alongside_training = {alongside!r}; give a list of some of {', '.join(ALONGSIDE)}")
     if experiment.get("renderer", "auto") not in RENDERERS:
         raise UserError(f"{path}: renderer = {experiment['renderer']!r}; choose one of {', '.join(RENDERERS)}")
     for required in ("name", "tasks", "record", "train", "eval"):
@@ -194,7 +205,8 @@ def episodes_left(folder: Path, episodes: int) -> int:
 
 def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[str, list[str]]]:
     """(phase, argv) for every command of these phases, in the order they run."""
-    rvt2, out, workers = list(settings.rvt2), settings.out, str(settings.workers)
+    rvt2, out = list(settings.rvt2), settings.out
+    alongside = experiment.get("alongside_training", []) if "train" in phases else []
     record, heldout, train, evaluate = (experiment.get(k, {}) for k in ("record", "heldout", "train", "eval"))
     merge = ["--merge-refinements", str(record["merge_refinements_mm"])] if record.get("merge_refinements_mm") else []
     seeds = settings.training_seeds if settings.training_seeds is not None else tuple(train.get("seeds", [0]))
@@ -205,11 +217,14 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     launch = rvt2 if settings.gpus == 1 else [*settings.torchrun, "--standalone", "--nproc-per-node", str(settings.gpus), "-m", "rvt2cli"]
     run = []
 
+    def workers_of(phase) -> str:
+        return str(max(1, settings.workers - CORES_FOR_TRAINING) if phase in alongside else settings.workers)
+
     def demos(phase, folder, tasks, episodes, first_seed, extra=()):  # one command: its workers serve every task
         # held-out demos come from the same experts as the training demos
         experts = [a for task, spec in record.get("experts", {}).items() if task in tasks for a in ("--expert", f"{task}={spec}")]
         run.append((phase, rvt2 + ["record", "--task", ",".join(tasks), "--episodes", str(episodes), "--seed", str(first_seed),
-                                   "--workers", workers, "--out", str(out / folder), "--no-progress", *experts, *extra]))
+                                   "--workers", workers_of(phase), "--out", str(out / folder), "--no-progress", *experts, *extra]))
         run.append((phase, rvt2 + ["extract-keyframes", str(out / folder)] + merge))
 
     for phase in phases:
@@ -248,7 +263,7 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
             oracle = experiment["oracle"]
             run.append((phase, rvt2 + ["eval", "--oracle", "--tasks", ",".join(experiment["tasks"]),
                                        "--episodes", str(oracle["episodes_per_task"]),
-                                       "--seed", str(oracle.get("first_seed", 10000)), "--workers", workers,
+                                       "--seed", str(oracle.get("first_seed", 10000)), "--workers", workers_of(phase),
                                        "--out", str(out / "oracle"), "--no-progress"]))
     return run
 
@@ -268,36 +283,63 @@ def runs_together(phase: str, argvs: list[list[str]]) -> bool:
     return phase in CONCURRENT_PHASES and len(argvs) > 1
 
 
-def execute(run: list[tuple[str, list[str]]], out: Path, extra_environment: dict[str, str] | None = None) -> int:
+def execute(run: list[tuple[str, list[str]]], out: Path, extra_environment: dict[str, str] | None = None,
+            alongside: tuple[str, ...] = ()) -> int:
     """Phase by phase, stopping at the first command that fails; each phase's seconds into out/phases.tsv.
-    A phase's commands run in turn, those of a phase in CONCURRENT_PHASES all at once."""
+    A phase's commands run in turn, those of a phase in CONCURRENT_PHASES all at once. The phases named in
+    `alongside` start with the train phase, in their own thread, and the train phase ends when they end."""
     out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, **(extra_environment or {})}
-    for phase, group in itertools.groupby(run, key=lambda command: command[0]):
-        argvs = [argv for _, argv in group]
-        started = time.monotonic()
-        together = runs_together(phase, argvs)
-        print(f"== {phase}" + (f" ({len(argvs)} commands at once)" if together else ""), flush=True)
-        batches = [argvs] if together else [[argv] for argv in argvs]
-        for batch in batches:
-            processes = []
-            for argv in batch:
-                print("$ " + shlex.join(argv), flush=True)
-                try:
-                    processes.append((argv, subprocess.Popen(argv, env=env)))
-                except FileNotFoundError:
-                    print(f"experiment: error: {argv[0]}: not found; run `make setup` and `source .venv/bin/activate`, "
-                          "or name the command with --rvt2", file=sys.stderr)
-                    for _, process in processes:
-                        process.wait()
-                    return 2
-            failed = [(argv, code) for argv, process in processes if (code := process.wait())]
-            if failed:  # the others ran to their end: an interrupted evaluation resumes from its journal
-                argv, code = failed[0]
-                print(f"experiment: {phase} failed (exit code {code}): {shlex.join(argv)}", file=sys.stderr)
-                return code
-        with open(out / "phases.tsv", "a") as f:
-            f.write(f"{phase}\t{time.monotonic() - started:.0f}\n")
+    phases = [(phase, [argv for _, argv in group]) for phase, group in itertools.groupby(run, key=lambda command: command[0])]
+    beside = [(phase, argvs) for phase, argvs in phases if phase in alongside] if any(p == "train" for p, _ in phases) else []
+    for phase, argvs in phases:
+        if (phase, argvs) in beside:
+            continue
+        if phase != "train" or not beside:
+            code = run_phase(phase, argvs, out, env)
+        else:
+            codes = []
+            thread = threading.Thread(target=lambda: codes.append(run_phases(beside, out, env)))
+            thread.start()
+            code = run_phase(phase, argvs, out, env)
+            thread.join()
+            code = code or codes[0]
+        if code:
+            return code
+    return 0
+
+
+def run_phases(phases: list[tuple[str, list[list[str]]]], out: Path, env: dict[str, str]) -> int:
+    for phase, argvs in phases:
+        if code := run_phase(phase, argvs, out, env):
+            return code
+    return 0
+
+
+def run_phase(phase: str, argvs: list[list[str]], out: Path, env: dict[str, str]) -> int:
+    """One phase's commands (in turn, or all at once in CONCURRENT_PHASES); its seconds into out/phases.tsv."""
+    started = time.monotonic()
+    together = runs_together(phase, argvs)
+    print(f"== {phase}" + (f" ({len(argvs)} commands at once)" if together else ""), flush=True)
+    for batch in [argvs] if together else [[argv] for argv in argvs]:
+        processes = []
+        for argv in batch:
+            print("$ " + shlex.join(argv), flush=True)
+            try:
+                processes.append((argv, subprocess.Popen(argv, env=env)))
+            except FileNotFoundError:
+                print(f"experiment: error: {argv[0]}: not found; run `make setup` and `source .venv/bin/activate`, "
+                      "or name the command with --rvt2", file=sys.stderr)
+                for _, process in processes:
+                    process.wait()
+                return 2
+        failed = [(argv, code) for argv, process in processes if (code := process.wait())]
+        if failed:  # the others ran to their end: an interrupted evaluation resumes from its journal
+            argv, code = failed[0]
+            print(f"experiment: {phase} failed (exit code {code}): {shlex.join(argv)}", file=sys.stderr)
+            return code
+    with open(out / "phases.tsv", "a") as f:
+        f.write(f"{phase}\t{time.monotonic() - started:.0f}\n")
     return 0
 
 
@@ -346,17 +388,19 @@ def main(argv: list[str] | None = None) -> int:
                             device=args.device, training_seeds=seeds,
                             evaluations=tuple(n for n in args.evaluations.split(",") if n) if args.evaluations else None)
         run = commands(experiment, settings, parse_phases(args.phase))
+        alongside = tuple(experiment.get("alongside_training", []))
     except UserError as e:
         print(f"experiment: error: {e}", file=sys.stderr)
         return e.exit_code
     if args.run:
-        return execute(run, out, environment(experiment, args.workers))
+        return execute(run, out, environment(experiment, args.workers), alongside)
     for name, value in environment(experiment, args.workers).items():
         print(f"export {name}={value}")
     for phase, group in itertools.groupby(run, key=lambda command: command[0]):
         argvs = [argv for _, argv in group]
         together = runs_together(phase, argvs)
-        print(f"# {phase}" + (" (run these at the same time: each has its share of the workers)" if together else ""))
+        print(f"# {phase}" + (" (run these at the same time: each has its share of the workers)" if together else "")
+              + (" (while train runs)" if phase in alongside and any(p == "train" for p, _ in run) else ""))
         for argv in argvs:
             print(shlex.join(argv))
     return 0

@@ -131,6 +131,38 @@ def test_an_evaluation_phase_runs_its_commands_at_the_same_time(tmp_path, capsys
     assert (tmp_path / "out" / "phases.tsv").read_text().split("\t")[0] == "offline"
 
 
+def test_phases_alongside_training_run_while_it_trains_and_the_evaluation_waits_for_them(tmp_path):
+    """The oracle starts with the training (which sees it start), runs on after the training has ended, and the
+    evaluation starts only once it has ended; each phase is timed on its own."""
+    sees = ("import pathlib, sys, time; other = pathlib.Path(sys.argv[1]); deadline = time.time() + 20\n"
+            "while not other.exists() and time.time() < deadline: time.sleep(0.05)\n"
+            "pathlib.Path(sys.argv[2]).write_text(str(other.exists()))")
+    slow = "import pathlib, sys, time; pathlib.Path(sys.argv[1]).touch(); time.sleep(1); pathlib.Path(sys.argv[2]).touch()"
+    started, ended = tmp_path / "oracle_started", tmp_path / "oracle_ended"
+    run = [("record", [sys.executable, "-c", "pass"]),
+           ("train", [sys.executable, "-c", sees, str(started), str(tmp_path / "train_saw")]),
+           ("eval", [sys.executable, "-c", sees, str(ended), str(tmp_path / "eval_saw")]),
+           ("oracle", [sys.executable, "-c", slow, str(started), str(ended)])]
+    assert runner.execute(run, tmp_path / "out", alongside=("oracle",)) == 0
+    assert (tmp_path / "train_saw").read_text() == "True" and (tmp_path / "eval_saw").read_text() == "True"
+    assert sorted(line.split("\t")[0] for line in (tmp_path / "out" / "phases.tsv").read_text().splitlines()) == [
+        "eval", "oracle", "record", "train"]
+    failing = [("train", [sys.executable, "-c", "pass"]), ("eval", [sys.executable, "-c", "pass"]),
+               ("oracle", [sys.executable, "-c", "raise SystemExit(5)"])]
+    assert runner.execute(failing, tmp_path / "failing", alongside=("oracle",)) == 5   # and no evaluation ran
+    assert [line.split("\t")[0] for line in (tmp_path / "failing" / "phases.tsv").read_text().splitlines()] == ["train"]
+
+
+def test_the_one_gpu_run_leaves_two_workers_to_the_training(tmp_path):
+    experiment = runner.load(runner.resolve("rvt2_18_onegpu"))
+    run = runner.commands(experiment, runner.Settings(out=tmp_path, workers=15))
+    workers = {argv[argv.index("--out") + 1].split("/")[-1]: int(argv[argv.index("--workers") + 1])
+               for _, argv in run if "--workers" in argv}
+    assert workers == {"demos": 15, "heldout": 13, "oracle": 13, "seed0_from10000": 8, "seed0_from10050": 7}
+    alone = runner.commands(experiment, runner.Settings(out=tmp_path, workers=15), ("oracle",))
+    assert alone[0][1][alone[0][1].index("--workers") + 1] == "15"   # no training beside it: every worker
+
+
 def test_evaluations_side_by_side_share_the_cores_as_they_share_the_workers(tmp_path, monkeypatch):
     """Each of rvt2-18's three evaluations gets a third of the workers; lavapipe's threads per worker are
     counted over all of them, in every command's environment, not over each command's own third."""
@@ -192,6 +224,8 @@ def test_print_is_the_default_and_names_each_phase(capsys, monkeypatch):
      "[eval]\nepisodes_per_task = 1\n", "[record] experts names 'pull_cube', which is not among the file's tasks"),
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\nexperts = { push_cube = 'nocolon' }\n[train]\n"
      "steps = 1\n[eval]\nepisodes_per_task = 1\n", "[record] experts takes task = \"module:function\" pairs"),
+    ("name = 'x'\nalongside_training = ['eval']\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n"
+     "[eval]\nepisodes_per_task = 1\n", "alongside_training = ['eval']; give a list of some of heldout, oracle"),
     ("name = 'x'\nrenderer = 'mesa'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\n"
      "episodes_per_task = 1\n", "renderer = 'mesa'; choose one of auto, nvidia, lavapipe"),
     ("name = 'x'\ntasks = ['push_cube']\n[record]\ndemos_per_task = 1\n[train]\nsteps = 1\n[eval]\nepisodes_per_task = 100\n"
