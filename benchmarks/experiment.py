@@ -27,6 +27,7 @@ training; the eval phase waits for both.
     python -m benchmarks.experiment experiments/rvt2_25demos.toml                    # print every command
     python -m benchmarks.experiment rvt2_10demos --run --phase train,eval --gpus 2   # some phases, 2 GPUs
     python -m benchmarks.experiment rvt2_25demos --run --out data/h --rvt2 "python3 -m rvt2cli"
+    python -m benchmarks.experiment rvt2_18_onegpu --run --steps 3000 --eval-seeds 20000-20049   # a schedule, on validation seeds
 
 The offline-GPU kit runs the same phases (`scripts/offline-gpu-host/gpu_onebox.sh experiment FILE PHASES`).
 """
@@ -84,6 +85,8 @@ class Settings:
     device: str = "cuda"
     training_seeds: tuple[int, ...] | None = None  # None: the experiment's
     evaluations: tuple[str, ...] | None = None  # the eval phase's evaluations by name ("main", extras'); None: all
+    steps: int | None = None  # None: the experiment's; else another schedule's length (warmup as the file gives it)
+    eval_seeds: tuple[int, int] | None = None  # (first, last): one evaluation on these seeds instead of the file's
 
 
 def resolve(name: str) -> Path:
@@ -178,7 +181,7 @@ def evaluations(evaluate: dict, chosen: tuple[str, ...] | None = None) -> list[t
     runs = []
     if chosen is None or MAIN_EVALUATION in chosen:
         size = episodes // ranges
-        runs = [(f"_from{first_seed + k * size}" if ranges > 1 else "", size, first_seed + k * size,
+        runs = [(f"_from{first_seed + k * size}" if ranges > 1 or evaluate.get("named_by_seed") else "", size, first_seed + k * size,
                  evaluate.get("options", {})) for k in range(ranges)]
     for name, extra in extras.items():
         if chosen is None or name in chosen:
@@ -208,6 +211,10 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     rvt2, out = list(settings.rvt2), settings.out
     alongside = experiment.get("alongside_training", []) if "train" in phases else []
     record, heldout, train, evaluate = (experiment.get(k, {}) for k in ("record", "heldout", "train", "eval"))
+    if settings.eval_seeds:  # e.g. validation seeds that choose a schedule: one range, none of the extra evaluations
+        first, last = settings.eval_seeds
+        evaluate = {"episodes_per_task": last - first + 1, "first_seed": first, "options": evaluate.get("options", {}),
+                    "named_by_seed": True}
     merge = ["--merge-refinements", str(record["merge_refinements_mm"])] if record.get("merge_refinements_mm") else []
     seeds = settings.training_seeds if settings.training_seeds is not None else tuple(train.get("seeds", [0]))
     batch = int(train.get("batch_size", 24))
@@ -239,7 +246,7 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
             for seed in seeds:
                 run.append((phase, launch + ["train", "--data", str(out / "demos"), "--out", str(out / "runs" / f"seed{seed}"),
                                              "--config", train.get("config", "rvt2"), "--seed", str(seed),
-                                             "--steps", str(train["steps"]), "--batch-size", str(batch // settings.gpus)]
+                                             "--steps", str(settings.steps or train["steps"]), "--batch-size", str(batch // settings.gpus)]
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
             runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate, settings.evaluations)]
@@ -368,6 +375,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--training-seeds", help="comma-separated training seeds instead of the file's (e.g. 0)")
     parser.add_argument("--evaluations", help="the eval phase's evaluations to run, comma-separated: 'main' (the "
                         "evaluation seeds' ranges) and [eval.extra.NAME]'s names (default: all)")
+    parser.add_argument("--steps", type=int, help="train this many steps instead of the file's (another schedule; the "
+                        "default folder becomes data/experiments/NAME_STEPSsteps)")
+    parser.add_argument("--eval-seeds", metavar="FIRST-LAST", help="evaluate on these seeds alone, e.g. validation seeds "
+                        "20000-20049 that choose a schedule (one range, no extra evaluations; evals/seedN_fromFIRST)")
     parser.add_argument("--rvt2", default="rvt2", help="the command that runs rvt2 (default rvt2; e.g. 'python3 -m rvt2cli')")
     parser.add_argument("--torchrun", default="torchrun",
                         help="the command that launches training on several GPUs (default torchrun)")
@@ -382,10 +393,19 @@ def main(argv: list[str] | None = None) -> int:
                 seeds = tuple(int(s) for s in args.training_seeds.split(","))
             except ValueError:
                 raise UserError(f"--training-seeds {args.training_seeds}: give whole numbers, comma-separated") from None
-        out = Path(args.out or f"data/experiments/{experiment['name']}")
+        if args.steps is not None and args.steps < 1:
+            raise UserError(f"--steps {args.steps}: give a whole number of at least 1")
+        eval_seeds = None
+        if args.eval_seeds:
+            first, _, last = args.eval_seeds.partition("-")
+            if not (first.isdigit() and last.isdigit() and int(first) <= int(last)):
+                raise UserError(f"--eval-seeds {args.eval_seeds}: give FIRST-LAST, e.g. 20000-20049")
+            eval_seeds = (int(first), int(last))
+        name = experiment["name"] + (f"_{args.steps}steps" if args.steps else "")
+        out = Path(args.out or f"data/experiments/{name}")
         settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), torchrun=tuple(shlex.split(args.torchrun)),
                             workers=args.workers, gpus=args.gpus,
-                            device=args.device, training_seeds=seeds,
+                            device=args.device, training_seeds=seeds, steps=args.steps, eval_seeds=eval_seeds,
                             evaluations=tuple(n for n in args.evaluations.split(",") if n) if args.evaluations else None)
         run = commands(experiment, settings, parse_phases(args.phase))
         alongside = tuple(experiment.get("alongside_training", []))

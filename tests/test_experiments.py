@@ -163,6 +163,20 @@ def test_the_one_gpu_run_leaves_two_workers_to_the_training(tmp_path):
     assert alone[0][1][alone[0][1].index("--workers") + 1] == "15"   # no training beside it: every worker
 
 
+def test_another_schedule_on_validation_seeds(tmp_path, capsys):
+    """--steps trains another schedule into its own folder; --eval-seeds evaluates it on those seeds alone."""
+    settings = runner.Settings(out=tmp_path, workers=4, steps=3000, eval_seeds=(20000, 20049))
+    run = runner.commands(runner.load(runner.resolve("rvt2_18_onegpu")), settings, ("train", "eval"))
+    train = build_parser().parse_args(rvt2_arguments(next(argv for phase, argv in run if phase == "train")))
+    assert train.steps == 3000 and train.warmup == 200
+    evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
+    assert [(Path(a.out).name, a.episodes, a.seed, a.workers) for a in evals] == [("seed0_from20000", 50, 20000, 4)]
+    assert runner.main(["rvt2_18_onegpu", "--steps", "3000", "--phase", "train"]) == 0
+    assert "data/experiments/rvt2_18_onegpu_3000steps/runs/seed0" in capsys.readouterr().out
+    assert runner.main(["rvt2_18_onegpu", "--eval-seeds", "20049-20000"]) == 2
+    assert "--eval-seeds 20049-20000: give FIRST-LAST" in capsys.readouterr().err
+
+
 def test_evaluations_side_by_side_share_the_cores_as_they_share_the_workers(tmp_path, monkeypatch):
     """Each of rvt2-18's three evaluations gets a third of the workers; lavapipe's threads per worker are
     counted over all of them, in every command's environment, not over each command's own third."""
