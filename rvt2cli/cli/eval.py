@@ -34,8 +34,9 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=integer(1, 256), default=E.workers, help="parallel simulator processes, one core each")
     p.add_argument("--shared-policy", action="store_true",
                    help="with --workers N: load the checkpoint once, in this process (on --device), and let the N simulator "
-                        "processes ask it for keyframes over the loopback, batched (docs/SERVING.md); default: each worker "
-                        "loads its own copy")
+                        "processes ask it for keyframes over the loopback, batched, every forward pass at N requests (padded) so "
+                        "that an episode does not depend on which others asked with it (docs/SERVING.md); default: each "
+                        "worker loads its own copy")
     p.add_argument("--oracle", action="store_true", help="also run the executor on ground-truth keyframes")
     p.add_argument("--demos", nargs="+", metavar="PATH", help="with --oracle: use these recorded demos' keyframes (and seeds)")
     p.add_argument("--instruction", help="evaluate with this phrasing of the instruction instead of the task's")

@@ -25,6 +25,10 @@ def register(subparsers) -> None:
                    help="a file holding the shared secret every request must carry (compared in constant time); "
                         "required off the loopback. Make one: python -c 'import secrets; print(secrets.token_urlsafe(32))' > FILE")
     p.add_argument("--max-batch", type=COUNT, default=S.max_batch, help=f"requests answered in one forward pass at most (default {S.max_batch})")
+    p.add_argument("--fixed-batch", action="store_true",
+                   help="run every forward pass at --max-batch, padded with copies: a request's answer then does not depend "
+                        "on how many others arrived with it (on a GPU, whose kernels depend on the batch's shape); costs "
+                        "a full batch's compute per pass")
     p.add_argument("--max-wait-ms", type=number(0.0, 1000.0), default=S.max_wait_ms,
                    help=f"how long a request waits for others to share its forward pass (default {S.max_wait_ms:g} ms)")
     p.add_argument("--max-message-mb", type=number(0.001, 4096.0), default=MAX_MESSAGE_BYTES / 2**20,
@@ -59,7 +63,7 @@ def run(args) -> int:
     log.setLevel(logging.INFO)
     log.propagate = False
     options = ServeOptions(host=args.host, port=args.port, token=token, max_batch=args.max_batch, max_wait_ms=args.max_wait_ms,
-                           max_message_bytes=int(args.max_message_mb * 2**20), cameras=tuple(args.cameras or ()))
+                           fixed_batch=args.fixed_batch, max_message_bytes=int(args.max_message_mb * 2**20), cameras=tuple(args.cameras or ()))
     server = open_server(args.checkpoint, args.device, options, args.stage2_min_points)
     model = server.model
 

@@ -316,7 +316,8 @@ def _policy_for_workers(opts: EvalOptions):
     """The options the worker processes run with. By default each loads the checkpoint itself (on --device:
     a copy of the policy, and a CUDA context, per worker). With --shared-policy the checkpoint is loaded once,
     here, and served to the workers on the loopback by `rvt2 serve`'s server in a thread (a token of this run
-    alone); its batcher answers the keyframe requests that arrive together in one forward pass."""
+    alone); its batcher answers the keyframe requests that arrive together in one forward pass, always at the
+    workers' count (`--fixed-batch`), so that an episode does not depend on which requests came together."""
     if not opts.shared_policy:
         yield opts
         return
@@ -326,7 +327,8 @@ def _policy_for_workers(opts: EvalOptions):
     from rvt2cli.serve.server import open_server
 
     token = secrets.token_urlsafe(32)
-    server = open_server(opts.checkpoint, opts.device, ServeOptions(port=0, token=token, max_batch=opts.workers),
+    # every forward pass at one size: an episode's keyframes do not depend on which workers asked together
+    server = open_server(opts.checkpoint, opts.device, ServeOptions(port=0, token=token, max_batch=opts.workers, fixed_batch=True),
                          opts.stage2_min_points).start_in_thread()
     try:
         yield replace(opts, checkpoint=None, policy_url=server.url, token=token, device="cpu", stage2_min_points=None)

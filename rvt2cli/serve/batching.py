@@ -8,6 +8,9 @@ calls `run` once for them all. A lone request therefore waits `max_wait_s` at mo
 fills batches instead. Where `run` raises for a batch, each of its requests is run alone, so that one bad
 request costs its own answer (its future raises) and not its neighbours'. Knows nothing of networks or
 models: the server and the evaluation's shared policy both use it.
+
+`at_fixed_size(run, size)` makes every call one of `size` items, for a `run` whose answers must not depend on
+how many requests arrived together (a GPU chooses its kernels by the batch's shape).
 """
 
 import queue
@@ -98,3 +101,20 @@ class Batcher:
         for (_, future), answer in zip(batch, answers):
             future.batch_size = len(batch)
             future.set_result(answer)
+
+
+def at_fixed_size(run, size: int):
+    """`run` called with exactly `size` items each time: a smaller batch is padded with copies of its first
+    item, and only its own answers are returned. A GPU chooses its matrix and attention kernels by the batch's
+    shape, so an answer computed among 3 others can differ in its last bits from one computed among 7; at one
+    size the kernels are the same whatever arrived together, and each item's answer is computed from its own
+    row alone."""
+    if size < 1:
+        raise ValueError(f"size {size} must be at least 1")
+
+    def padded(items: list) -> list:
+        if len(items) > size:
+            raise ValueError(f"{len(items)} items for a batch of {size}")
+        return run(list(items) + [items[0]] * (size - len(items)))[:len(items)]
+
+    return padded

@@ -16,6 +16,7 @@ class ServeOptions:
     token: str | None = None            # every request must carry it (required off the loopback)
     max_batch: int = 16
     max_wait_ms: float = 5.0            # how long the first request of a batch waits for others
+    fixed_batch: bool = False           # every forward pass at max_batch (padded): answers independent of arrivals
     max_message_bytes: int = MAX_MESSAGE_BYTES
     cameras: tuple[str, ...] = ()       # camera names every request must carry
     prepare_threads: int = 4            # requests checked and fused at once

@@ -29,7 +29,7 @@ from rvt2_client.wire import HEALTH_PATH, PROTOCOL, WireError, pack, unpack
 from rvt2cli import __version__
 from rvt2cli.deploy import KeyframePolicy, PolicyInput
 from rvt2cli.errors import UserError
-from rvt2cli.serve.batching import Batcher
+from rvt2cli.serve.batching import Batcher, at_fixed_size
 from rvt2cli.serve.options import ServeOptions, is_loopback
 from rvt2cli.serve.requests import MAX_INSTRUCTION_CHARS, predict_inputs
 
@@ -58,7 +58,9 @@ class PolicyServer:
         self.policy, self.options = policy, options
         self.model = policy.describe()
         self.model["sha256"] = file_sha256(Path(self.model["weights"]))
-        self.batcher = Batcher(policy.predict_inputs, options.max_batch, options.max_wait_ms / 1000, name="rvt2-serve-batcher")
+        # a fixed batch: what a request is answered does not depend on how many arrived with it (batching.at_fixed_size)
+        self.forward = at_fixed_size(policy.predict_inputs, options.max_batch) if options.fixed_batch else policy.predict_inputs
+        self.batcher = Batcher(self.forward, options.max_batch, options.max_wait_ms / 1000, name="rvt2-serve-batcher")
         self.prepare = ThreadPoolExecutor(options.prepare_threads, thread_name_prefix="rvt2-serve-prepare")
         self.started = time.time()
         self.counts = {"answered": 0, "refused": 0}
@@ -77,7 +79,8 @@ class PolicyServer:
                 "tasks": {t: {"scene_bounds": b, "aim_offset": self.policy.aim_offsets.get(t)} for t, b in self.policy.tasks.items()},
                 "cameras": list(o.cameras), "max_message_bytes": o.max_message_bytes,
                 "max_instruction_chars": MAX_INSTRUCTION_CHARS,
-                "batching": {"max_batch": o.max_batch, "max_wait_ms": o.max_wait_ms, "requests": self.batcher.stats.requests,
+                "batching": {"max_batch": o.max_batch, "max_wait_ms": o.max_wait_ms, "fixed_batch": o.fixed_batch,
+                             "requests": self.batcher.stats.requests,
                              "batches": self.batcher.stats.batches, "largest": self.batcher.stats.largest},
                 "requests": dict(self.counts), "uptime_s": round(time.time() - self.started, 1),
                 **({"gpu_memory_mib": gpu_memory(self.policy.device)} if str(self.policy.device).startswith("cuda") else {})}
@@ -95,7 +98,7 @@ class PolicyServer:
         xyz = np.random.default_rng(0).uniform(lo, hi, size=(1000, 3)).astype(np.float32)
         cloud = Cloud(xyz=xyz, rgb=np.full((1000, 3), 128, np.uint8))
         lang = torch.zeros(self.policy.instructions.tokens, LANG_DIM)
-        self.policy.predict_inputs([PolicyInput(cloud, True, np.array([0.04, 0.04], np.float32), 0, lang, list(bounds), None)])
+        self.forward([PolicyInput(cloud, True, np.array([0.04, 0.04], np.float32), 0, lang, list(bounds), None)])
 
     # --- one connection --------------------------------------------------------------------------------
     def _authorised(self, given) -> bool:

@@ -19,7 +19,7 @@
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
 # building blocks of the benchmarks: bench, servebench, evalsharebench, record, keyframes, merged, heldout, train,
 # loopbench, memorybench, ddpbench, eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile,
-# evalprofile, capturetests.
+# evalprofile, capturetests, gputests.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
@@ -222,6 +222,12 @@ PY
     python3 -m pytest -q -p no:cacheprovider tests/test_capture.py 2>&1 | tail -15 | tee "$W/capture_tests.txt"
     phase capturetests $(( $(clock) - t ))
     ;;
+  gputests)  # every test CI skips for want of CUDA or NVIDIA rendering (the serving ones need the websockets/msgpack wheels)
+    t=$(clock)
+    python3 -m pytest -q -p no:cacheprovider -rs tests/test_capture.py tests/test_serve.py -k "capture or gpu or cuda" 2>&1 \
+      | tail -20 | tee "$W/gpu_tests.txt"
+    phase gputests $(( $(clock) - t ))
+    ;;
   evalprofile)  # where an evaluation episode's core-seconds go: rvt2-18's recorded predictions replayed, one process
     t=$(clock)
     python3 -m benchmarks.eval_bench benchmarks/results/rvt2_18/eval_partial/episodes.jsonl.gz \
@@ -324,7 +330,7 @@ PY
   results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
     # the patterns are matched in $W below, not here
-    files=(phases.tsv "record_bench_*.json" capture_bench.json "record_profile_*.json" eval_profile.json capture_tests.txt memory_bench.json memory_bench.log serve_bench.json eval_share_bench.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+    files=(phases.tsv "record_bench_*.json" capture_bench.json "record_profile_*.json" eval_profile.json capture_tests.txt gpu_tests.txt memory_bench.json memory_bench.log serve_bench.json eval_share_bench.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
       e=$(basename "$EXPERIMENT" .toml)
@@ -360,7 +366,7 @@ print("\n".join(all_pieces(json.load(open(sys.argv[1])))))' "$W/export/$RUN/mani
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile|capturetests|servebench|evalsharebench" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile|capturetests|gputests|servebench|evalsharebench" >&2
     exit 2
     ;;
   esac
