@@ -168,10 +168,12 @@ def options(table: dict) -> list[str]:
 MAIN_EVALUATION = "main"  # the evaluation seeds' ranges; the extra evaluations go by their [eval.extra.NAME]
 
 
-def evaluations(evaluate: dict, chosen: tuple[str, ...] | None = None) -> list[tuple[str, int, int, dict]]:
+def evaluations(evaluate: dict, chosen: tuple[str, ...] | None = None,
+                named_by_seed: bool = False) -> list[tuple[str, int, int, dict]]:
     """(folder suffix, episodes per task, first seed, options) of each evaluation of a trained run: the
     evaluation seeds, split into `ranges` disjoint ranges reported apart ("main"), then each
-    [eval.extra.NAME]; only those `chosen` names, where given."""
+    [eval.extra.NAME]; only those `chosen` names, where given. A single range's folder is named by its first
+    seed only with `named_by_seed` (seeds given on the command line)."""
     episodes, first_seed, ranges = evaluate["episodes_per_task"], evaluate.get("first_seed", 10000), evaluate.get("ranges", 1)
     extras = evaluate.get("extra", {})
     unknown = [name for name in chosen or () if name != MAIN_EVALUATION and name not in extras]
@@ -181,7 +183,7 @@ def evaluations(evaluate: dict, chosen: tuple[str, ...] | None = None) -> list[t
     runs = []
     if chosen is None or MAIN_EVALUATION in chosen:
         size = episodes // ranges
-        runs = [(f"_from{first_seed + k * size}" if ranges > 1 or evaluate.get("named_by_seed") else "", size, first_seed + k * size,
+        runs = [(f"_from{first_seed + k * size}" if ranges > 1 or named_by_seed else "", size, first_seed + k * size,
                  evaluate.get("options", {})) for k in range(ranges)]
     for name, extra in extras.items():
         if chosen is None or name in chosen:
@@ -213,8 +215,7 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
     record, heldout, train, evaluate = (experiment.get(k, {}) for k in ("record", "heldout", "train", "eval"))
     if settings.eval_seeds:  # e.g. validation seeds that choose a schedule: one range, none of the extra evaluations
         first, last = settings.eval_seeds
-        evaluate = {"episodes_per_task": last - first + 1, "first_seed": first, "options": evaluate.get("options", {}),
-                    "named_by_seed": True}
+        evaluate = {"episodes_per_task": last - first + 1, "first_seed": first, "options": evaluate.get("options", {})}
     merge = ["--merge-refinements", str(record["merge_refinements_mm"])] if record.get("merge_refinements_mm") else []
     seeds = settings.training_seeds if settings.training_seeds is not None else tuple(train.get("seeds", [0]))
     batch = int(train.get("batch_size", 24))
@@ -249,7 +250,8 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                                              "--steps", str(settings.steps or train["steps"]), "--batch-size", str(batch // settings.gpus)]
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
-            runs = [(seed, *evaluation) for seed in seeds for evaluation in evaluations(evaluate, settings.evaluations)]
+            each = evaluations(evaluate, settings.evaluations, named_by_seed=settings.eval_seeds is not None)
+            runs = [(seed, *evaluation) for seed in seeds for evaluation in each]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
             # an evaluation of some tasks only (options' `tasks`, as `rvt2 eval --tasks` reads it) runs their episodes alone
             tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts in runs]
