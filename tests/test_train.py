@@ -77,7 +77,11 @@ def test_a_time_limit_saves_and_stops_and_resume_finishes_the_same_run(tiny_data
     said = []
     stopped = train(TrainOptions(out=str(tmp_path / "b"), time_limit=1e-9, **opts), say=said.append)
     assert stopped.out_of_time and stopped.steps == 3
-    assert json.loads((tmp_path / "b" / "run.json").read_text())["out_of_time"] is True
+    run = json.loads((tmp_path / "b" / "run.json").read_text())
+    assert run["out_of_time"] is True
+    # where the time before the first step went: the data line, and run.json's setup_seconds within seconds
+    assert 0 < run["setup_seconds"] < run["seconds"]
+    assert any(line.startswith("data: ") and "read and embedded in" in line and "packed in" in line for line in said)
     assert (tmp_path / "b" / "last").read_text().strip() == "checkpoints/step_0000003"
     assert any("--resume" in line for line in said)
     resumed = train(TrainOptions(out=str(tmp_path / "b"), resume=True, **opts), say=lambda *_: None)
@@ -507,6 +511,34 @@ def test_zoom_and_coarse_action_features_are_kept_with_the_run(tiny_dataset, tmp
     one_stage = cli("train", "--data", tiny_dataset, "--out", tmp_path / "rvt", "--config", "rvt", "--coarse-action-features")
     assert_one_line_error(one_stage, "--config rvt has one stage")
     assert not (tmp_path / "rvt").exists()
+
+
+def test_packed_clouds_are_each_cloud_fitted_as_one_observation_is(tiny_dataset):
+    """pack writes each recorded cloud into its zeroed row (`fit_points_into`); the rows are what
+    `fit_points`, the single observation's path (deploy, export), makes of the same cloud with the same
+    random stream: subsampled in order where the cloud is larger than max_points, zero-padded where smaller."""
+    import numpy as np
+
+    from rvt2cli.data.paths import episode_paths
+    from rvt2cli.model.config import SMALL
+    from rvt2cli.model.observation import fit_points
+    from rvt2cli.train.packed import pack
+    from rvt2cli.train.samples import load_samples
+
+    samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
+    lang = torch.zeros(len(samples.instructions), SMALL.lang_tokens, 384)
+    sizes = sorted(len(x) for x in samples.xyz)
+    max_points = sizes[len(sizes) // 2]  # half the clouds are subsampled, half padded
+    indices = list(range(len(samples)))[::-1]
+    packed = pack(samples, indices, lang, max_points, "cpu", seed=3)
+    rng = np.random.default_rng(3)
+    subsampled = 0
+    for row, i in enumerate(indices):
+        xyz, rgb, count = fit_points(samples.xyz[i], samples.rgb[i], max_points, rng)
+        subsampled += len(samples.xyz[i]) > max_points
+        assert packed.count[row] == count == min(len(samples.xyz[i]), max_points)
+        assert np.array_equal(packed.xyz[row].numpy(), xyz) and np.array_equal(packed.rgb[row].numpy(), rgb)
+    assert 0 < subsampled < len(indices)
 
 
 def test_an_aim_offset_moves_the_held_targets_and_keeps_the_tcp_for_scoring(tiny_dataset):

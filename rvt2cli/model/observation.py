@@ -80,14 +80,22 @@ def fit_points(xyz: np.ndarray, rgb: np.ndarray, max_points: int,
                rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """A cloud as exactly `max_points` rows: a random subset (order kept) if it has more, zero rows
     after it if fewer. Returns (xyz [max_points, 3] float32, rgb [max_points, 3] like rgb, real rows)."""
+    out_xyz = np.zeros((max_points, 3), np.float32)
+    out_rgb = np.zeros((max_points, 3), rgb.dtype)
+    return out_xyz, out_rgb, fit_points_into(out_xyz, out_rgb, xyz, rgb, rng)
+
+
+def fit_points_into(out_xyz: np.ndarray, out_rgb: np.ndarray, xyz: np.ndarray, rgb: np.ndarray,
+                    rng: np.random.Generator | None = None) -> int:
+    """`fit_points` into rows that are zero already (a packed array's [max_points, 3] rows): one copy of
+    the cloud, none of the padding. Returns the real rows."""
+    max_points = len(out_xyz)
     if len(xyz) > max_points:
         rng = rng if rng is not None else np.random.default_rng(0)
         keep = np.sort(rng.choice(len(xyz), max_points, replace=False))
         xyz, rgb = xyz[keep], rgb[keep]
-    out_xyz = np.zeros((max_points, 3), np.float32)
-    out_rgb = np.zeros((max_points, 3), rgb.dtype)
     out_xyz[: len(xyz)], out_rgb[: len(xyz)] = xyz, rgb
-    return out_xyz, out_rgb, len(xyz)
+    return len(xyz)
 
 
 def colours(rgb: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from rvt2cli.model.observation import fit_points
+from rvt2cli.model.observation import fit_points_into
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.tasks import TCP_AIM
 from rvt2cli.train.samples import SampleSet
@@ -68,11 +68,11 @@ def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points:
     training batches. `clouds_on_host`: the clouds stay on the host (`clouds.clouds_on_host` decides)."""
     rng = np.random.default_rng(seed)
     n = len(indices)
-    xyz = np.zeros((n, max_points, 3), np.float32)
+    xyz = np.zeros((n, max_points, 3), np.float32)  # zero pages until written: each row's padding costs nothing
     rgb = np.zeros((n, max_points, 3), np.uint8)
     count = np.zeros(n, np.int64)
     for row, i in enumerate(indices):
-        xyz[row], rgb[row], count[row] = fit_points(samples.xyz[i], samples.rgb[i], max_points, rng)
+        count[row] = fit_points_into(xyz[row], rgb[row], samples.xyz[i], samples.rgb[i], rng)
     workspaces = [Workspace.from_bounds(samples.bounds[t]) for t in samples.tasks]
     pick = np.asarray(indices, dtype=np.int64)
     keyframe_index = np.asarray(samples.keyframe_index if samples.keyframe_index else [-1] * len(samples), np.int64)

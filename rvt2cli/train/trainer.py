@@ -40,6 +40,7 @@ class TrainResult:
     skipped_terms: Counter = field(default_factory=Counter)  # this process's skipped steps by what was not finite
     last_validation: dict | None = None
     seconds: float = 0.0
+    setup_seconds: float = 0.0           # of `seconds`, before the first step: reading and packing the data, building the model
     samples_per_s: float | None = None   # the loop's throughput after its first logged interval
     packed: object = field(default=None, repr=False)  # the packed training samples (for inspection)
     out_of_time: bool = False            # stopped at --time-limit before the last step, a checkpoint saved
@@ -90,7 +91,8 @@ def train(opts: TrainOptions, say=print, data: TrainingData | None = None) -> Tr
     if rank == 0 and not opts.resume:
         used = sorted({samples.episodes[samples.episode_index[i]] for i in data.selected})
         write_run_json(run_dir, {"options": opts.to_json(), "episodes": used})
-    result = TrainResult(run_dir=run_dir, steps=state.step, skipped_steps=state.skipped)
+    result = TrainResult(run_dir=run_dir, steps=state.step, skipped_steps=state.skipped,
+                         setup_seconds=time.perf_counter() - start_time)
     bar = tqdm(total=opts.steps, initial=state.step, desc=f"train {cfg.name}", unit="step",
                disable=not (opts.progress and rank == 0), dynamic_ncols=True)
     pending: list = []   # (step, StepResult, lr) not yet read back from the device
@@ -173,7 +175,7 @@ def train(opts: TrainOptions, say=print, data: TrainingData | None = None) -> Tr
     result.seconds = time.perf_counter() - start_time
     result.packed = data.packed
     if rank == 0:
-        write_run_json(run_dir, {"seconds": result.seconds, "samples_per_s": result.samples_per_s, "steps": result.steps,
-                                  "out_of_time": result.out_of_time})
+        write_run_json(run_dir, {"seconds": result.seconds, "setup_seconds": result.setup_seconds,
+                                  "samples_per_s": result.samples_per_s, "steps": result.steps, "out_of_time": result.out_of_time})
     return result
 

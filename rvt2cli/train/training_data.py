@@ -4,6 +4,7 @@ embedded, and packed (rvt2cli.train.batches). `rvt2cli.train.data_sharing` hands
 of a several-GPU run.
 """
 
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -78,6 +79,7 @@ class TrainingData:
 
 def read_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resume: Checkpoint | None, say) -> TrainingData:
     """Read, select, split, embed and pack the training samples (`data_sharing.load_data` without the sharing)."""
+    started = time.perf_counter()
     samples, known = load_training_data(opts.data, opts.include_failures, progress, opts.keyframe_starts_only, opts.cameras,
                                         opts.task_set)
     selected = select_samples(samples, opts.episodes_per_task, opts.keyframe_starts_only)
@@ -108,19 +110,22 @@ def read_data(opts: TrainOptions, cfg: ModelConfig, device, progress: bool, resu
         raise UserError(f"--aim-held: none of the tasks ({', '.join(samples.tasks)}) declares an aim_offset in its "
                         "tasks/*.toml; add one (m, in the TCP frame) or leave the flag out")
     weights = task_weight_array(opts.task_weights, samples.tasks)
+    read_seconds = time.perf_counter() - started
     nbytes = clouds_bytes(len(train_idx) + len(val_idx), opts.max_points)
     on_host = clouds_on_host(opts.samples_on, nbytes, device)
     packed = pack(samples, train_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims, phrasings=phrasings,
                   clouds_on_host=on_host)
     packed_val = pack(samples, val_idx, lang, opts.max_points, device, seed=opts.seed, aim_offsets=aims,
                       clouds_on_host=on_host) if val_idx else None
+    pack_seconds = time.perf_counter() - started - read_seconds
     used_episodes = len({samples.episode_index[i] for i in selected})
     say(f"data: {len(selected)} samples from {used_episodes} episodes of {len(samples.tasks)} task(s) "
         f"({', '.join(samples.tasks)}); {len(train_idx)} train, {len(val_idx)} validation"
         + (f"; skipped {samples.skipped_empty} empty clouds" if samples.skipped_empty else "")
         + (f", {samples.skipped_failures} failed episodes" if samples.skipped_failures else "")
         + f"; clouds {f'{nbytes / 2**30:.1f} GiB' if nbytes >= 2**30 else f'{nbytes / 2**20:.0f} MiB'} on the "
-        + ("host" if on_host else "GPU" if device.type == "cuda" else "CPU"))
+        + ("host" if on_host else "GPU" if device.type == "cuda" else "CPU")
+        + f" (read and embedded in {read_seconds:.0f} s, packed in {pack_seconds:.0f} s)")
     if weights is not None:
         shares = TaskSampler(packed.task, task_weights=weights).shares()
         say("task shares of the draws (--task-weights): "
