@@ -208,10 +208,15 @@ def episodes_left(folder: Path, episodes: int) -> int:
     return max(1, episodes - len(read_journal(journal)[1])) if journal.exists() else episodes
 
 
+def beside_training(experiment: dict, phases) -> tuple[str, ...]:
+    """The file's `alongside_training` phases where these phases train; none where they do not."""
+    return tuple(experiment.get("alongside_training", [])) if "train" in phases else ()
+
+
 def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[str, list[str]]]:
     """(phase, argv) for every command of these phases, in the order they run."""
     rvt2, out = list(settings.rvt2), settings.out
-    alongside = experiment.get("alongside_training", []) if "train" in phases else []
+    alongside = beside_training(experiment, phases)
     record, heldout, train, evaluate = (experiment.get(k, {}) for k in ("record", "heldout", "train", "eval"))
     if settings.eval_seeds:  # e.g. validation seeds that choose a schedule: one range, none of the extra evaluations
         first, last = settings.eval_seeds
@@ -409,8 +414,9 @@ def main(argv: list[str] | None = None) -> int:
                             workers=args.workers, gpus=args.gpus,
                             device=args.device, training_seeds=seeds, steps=args.steps, eval_seeds=eval_seeds,
                             evaluations=tuple(n for n in args.evaluations.split(",") if n) if args.evaluations else None)
-        run = commands(experiment, settings, parse_phases(args.phase))
-        alongside = tuple(experiment.get("alongside_training", []))
+        phases = parse_phases(args.phase)
+        run = commands(experiment, settings, phases)
+        alongside = beside_training(experiment, phases)
     except UserError as e:
         print(f"experiment: error: {e}", file=sys.stderr)
         return e.exit_code
@@ -422,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         argvs = [argv for _, argv in group]
         together = runs_together(phase, argvs)
         print(f"# {phase}" + (" (run these at the same time: each has its share of the workers)" if together else "")
-              + (" (while train runs)" if phase in alongside and any(p == "train" for p, _ in run) else ""))
+              + (" (while train runs)" if phase in alongside else ""))
         for argv in argvs:
             print(shlex.join(argv))
     return 0
