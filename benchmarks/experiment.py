@@ -28,6 +28,8 @@ training; the eval phase waits for both.
     python -m benchmarks.experiment rvt2_10demos --run --phase train,eval --gpus 2   # some phases, 2 GPUs
     python -m benchmarks.experiment rvt2_25demos --run --out data/h --rvt2 "python3 -m rvt2cli"
     python -m benchmarks.experiment rvt2_18_onegpu --run --steps 3000 --eval-seeds 20000-20049   # a schedule, on validation seeds
+    python -m benchmarks.experiment rvt2_18 --run --renderer nvidia --gpus 2 --eval-seeds 20000-20049 --eval-steps 1500,3000,4500
+                                       # a success-vs-steps curve: checkpoints of one schedule, on validation seeds
 
 The offline-GPU kit runs the same phases (`scripts/offline-gpu-host/gpu_onebox.sh experiment FILE PHASES`).
 """
@@ -87,6 +89,7 @@ class Settings:
     evaluations: tuple[str, ...] | None = None  # the eval phase's evaluations by name ("main", extras'); None: all
     steps: int | None = None  # None: the experiment's; else another schedule's length (warmup as the file gives it)
     eval_seeds: tuple[int, int] | None = None  # (first, last): one evaluation on these seeds instead of the file's
+    eval_steps: tuple[int, ...] = ()  # earlier checkpoints of each run evaluated as its last is (a success-vs-steps curve)
 
 
 def resolve(name: str) -> Path:
@@ -213,6 +216,17 @@ def beside_training(experiment: dict, phases) -> tuple[str, ...]:
     return tuple(experiment.get("alongside_training", [])) if "train" in phases else ()
 
 
+def saved_steps(train: dict, settings: Settings) -> tuple[int, ...]:
+    """settings.eval_steps, each checked to be a checkpoint the training keeps: a multiple of its save-every
+    (`rvt2 train --save-every`, 1000 unless the file says) short of its last step."""
+    steps, every = settings.steps or train["steps"], int(train.get("options", {}).get("save-every", 1000))
+    wrong = [step for step in settings.eval_steps if step % every or not 0 < step < steps]
+    if wrong:
+        raise UserError(f"--eval-steps {','.join(map(str, wrong))}: the training keeps a checkpoint every {every} steps "
+                        f"before its last ({steps}); give some of {','.join(map(str, range(every, steps, every))) or 'none'}")
+    return settings.eval_steps
+
+
 def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[str, list[str]]]:
     """(phase, argv) for every command of these phases, in the order they run."""
     rvt2, out = list(settings.rvt2), settings.out
@@ -256,15 +270,19 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
             each = evaluations(evaluate, settings.evaluations, named_by_seed=settings.eval_seeds is not None)
-            runs = [(seed, *evaluation) for seed in seeds for evaluation in each]
+            # the last checkpoint first, then each earlier one asked for: (run folder or checkpoint, folder suffix)
+            checkpoints = [("", "")] + [(f"/checkpoints/step_{step:07d}", f"_step{step}")
+                                        for step in saved_steps(train, settings)]
+            runs = [(seed, name + suffix, *rest, checkpoint)
+                    for seed in seeds for name, *rest in each for checkpoint, suffix in checkpoints]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
             # an evaluation of some tasks only (options' `tasks`, as `rvt2 eval --tasks` reads it) runs their episodes alone
-            tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts in runs]
+            tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts, _ in runs]
             shares = share_workers(settings.workers, [episodes_left(folder, episodes * count)
-                                                      for folder, (_, _, episodes, _, _), count in zip(folders, runs, tasks_of)])
-            for (seed, name, episodes, first_seed, extra_options), folder, share in zip(runs, folders, shares):
+                                                      for folder, (_, _, episodes, *_), count in zip(folders, runs, tasks_of)])
+            for (seed, name, episodes, first_seed, extra_options, checkpoint), folder, share in zip(runs, folders, shares):
                 resume = ["--resume"] if (folder / JOURNAL).exists() else []  # an interrupted evaluation
-                run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}"),
+                run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}") + checkpoint,
                                            "--episodes", str(episodes), "--seed", str(first_seed), "--workers", str(share),
                                            "--device", settings.device, "--out", str(folder)]
                             + options(extra_options) + resume + ["--no-progress"]))
@@ -386,6 +404,12 @@ def main(argv: list[str] | None = None) -> int:
                         "default folder becomes data/experiments/NAME_STEPSsteps)")
     parser.add_argument("--eval-seeds", metavar="FIRST-LAST", help="evaluate on these seeds alone, e.g. validation seeds "
                         "20000-20049 that choose a schedule (one range, no extra evaluations; evals/seedN_fromFIRST)")
+    parser.add_argument("--eval-steps", metavar="STEP,...", help="also evaluate these earlier checkpoints of each run "
+                        "(multiples of the training's save-every), each as the last one is: a success-vs-steps curve "
+                        "(evals/seedN_fromFIRST_stepSTEP)")
+    parser.add_argument("--renderer", choices=RENDERERS, help="every phase renders with this Vulkan driver instead of "
+                        "the file's (e.g. nvidia where the file's lavapipe would take too long; demos and evaluations "
+                        "still share it, and the default folder gains _RENDERER)")
     parser.add_argument("--rvt2", default="rvt2", help="the command that runs rvt2 (default rvt2; e.g. 'python3 -m rvt2cli')")
     parser.add_argument("--torchrun", default="torchrun",
                         help="the command that launches training on several GPUs (default torchrun)")
@@ -408,11 +432,18 @@ def main(argv: list[str] | None = None) -> int:
             if not (first.isdigit() and last.isdigit() and int(first) <= int(last)):
                 raise UserError(f"--eval-seeds {args.eval_seeds}: give FIRST-LAST, e.g. 20000-20049")
             eval_seeds = (int(first), int(last))
+        try:
+            eval_steps = tuple(int(s) for s in args.eval_steps.split(",")) if args.eval_steps else ()
+        except ValueError:
+            raise UserError(f"--eval-steps {args.eval_steps}: give whole numbers, comma-separated, e.g. 2000,4000") from None
+        if args.renderer and args.renderer != experiment.get("renderer", "auto"):
+            experiment = {**experiment, "renderer": args.renderer, "name": f"{experiment['name']}_{args.renderer}"}
         name = experiment["name"] + (f"_{args.steps}steps" if args.steps else "")
         out = Path(args.out or f"data/experiments/{name}")
         settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), torchrun=tuple(shlex.split(args.torchrun)),
                             workers=args.workers, gpus=args.gpus,
                             device=args.device, training_seeds=seeds, steps=args.steps, eval_seeds=eval_seeds,
+                            eval_steps=eval_steps,
                             evaluations=tuple(n for n in args.evaluations.split(",") if n) if args.evaluations else None)
         phases = parse_phases(args.phase)
         run = commands(experiment, settings, phases)

@@ -177,6 +177,35 @@ def test_another_schedule_on_validation_seeds(tmp_path, capsys):
     assert "--eval-seeds 20049-20000: give FIRST-LAST" in capsys.readouterr().err
 
 
+def test_a_curve_evaluates_earlier_checkpoints_beside_the_last(tmp_path, capsys):
+    """--eval-steps evaluates the checkpoints `rvt2 train` keeps on the way (save-every), each into its own folder, on
+    the same seeds as the last, all at once with the workers shared; a step the training keeps no checkpoint of is refused."""
+    settings = runner.Settings(out=tmp_path, workers=9, steps=6000, eval_seeds=(20000, 20049), eval_steps=(2000, 4000))
+    run = runner.commands(runner.load(runner.resolve("rvt2_18_onegpu")), settings, ("train", "eval"))
+    train = build_parser().parse_args(rvt2_arguments(next(argv for phase, argv in run if phase == "train")))
+    evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
+    assert [(Path(a.out).name, a.checkpoint.removeprefix(str(tmp_path)), a.seed, a.episodes, a.workers) for a in evals] == [
+        ("seed0_from20000", "/runs/seed0", 20000, 50, 3),
+        ("seed0_from20000_step2000", "/runs/seed0/checkpoints/step_0002000", 20000, 50, 3),
+        ("seed0_from20000_step4000", "/runs/seed0/checkpoints/step_0004000", 20000, 50, 3)]
+    assert train.save_every == 1000 and train.steps == 6000
+    assert runner.runs_together("eval", [argv for phase, argv in run if phase == "eval"])
+    assert runner.main(["rvt2_18_onegpu", "--steps", "6000", "--eval-steps", "2500,6000"]) == 2
+    assert "--eval-steps 2500,6000: the training keeps a checkpoint every 1000 steps before its last (6000)" in capsys.readouterr().err
+    assert runner.main(["rvt2_18_onegpu", "--eval-steps", "two"]) == 2
+    assert "--eval-steps two: give whole numbers" in capsys.readouterr().err
+
+
+def test_another_renderer_for_every_phase_and_its_own_folder(capsys):
+    """--renderer replaces the file's Vulkan driver in every command's environment, and the default folder says so."""
+    assert runner.main(["rvt2_18", "--renderer", "nvidia", "--eval-seeds", "20000-20049", "--eval-steps", "1500,3000,4500"]) == 0
+    printed = capsys.readouterr().out
+    assert "export RVT2_VULKAN=nvidia" in printed and "lavapipe" not in printed
+    assert "data/experiments/rvt2_18_nvidia/evals/seed0_from20000_step4500" in printed
+    assert "runs/seed0/checkpoints/step_0001500 " in printed
+    assert runner.environment(runner.load(runner.resolve("rvt2_18")), 4)["RVT2_VULKAN"] == "lavapipe"
+
+
 def test_evaluations_side_by_side_share_the_cores_as_they_share_the_workers(tmp_path, monkeypatch):
     """Each of rvt2-18's three evaluations gets a third of the workers; lavapipe's threads per worker are
     counted over all of them, in every command's environment, not over each command's own third."""
