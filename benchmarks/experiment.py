@@ -3,7 +3,8 @@
 An experiment file is data: the tasks, the demos per task and their seeds, the held-out demos, the
 training options, steps, batch and training seeds, the evaluation's episodes and seeds, and optionally
 the renderer every phase uses (`renderer = "lavapipe"` or "nvidia": RVT2_VULKAN in the commands'
-environment). This module prints those commands (`--print`, the default) or runs them one after the
+environment). A file may start from another (`extends = "rvt2_18_onegpu"`) and give only its name and what it
+changes, table by table (not the other's [published]). This module prints those commands (`--print`, the default) or runs them one after the
 other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
 
     record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`); with
@@ -59,7 +60,7 @@ CONCURRENT_PHASES = {"eval"}  # its commands run at the same time (`commands` sh
 # The keys an experiment file may have, per table; anything else is a typo the user should hear about.
 SCHEMA = {
     "": {"name", "summary", "renderer", "tasks", "alongside_training", "record", "heldout", "train", "eval", "oracle",
-         "published"},
+         "published", "extends"},
     "record": {"demos_per_task", "first_seed", "merge_refinements_mm", "hold_out_variations", "experts"},
     "heldout": {"tasks", "demos_per_task", "first_seed"},
     "train": {"config", "seeds", "steps", "batch_size", "options"},
@@ -103,7 +104,13 @@ def resolve(name: str) -> Path:
     return path
 
 
-def load(path: Path) -> dict:
+def merged(base: dict, changes: dict) -> dict:
+    """`base` with `changes` laid over it, table by table: a key changes, every other key stays."""
+    return base | {k: merged(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+                   for k, v in changes.items()}
+
+
+def load(path: Path, _extending: tuple[Path, ...] = ()) -> dict:
     """The experiment file, its keys checked against SCHEMA and its tasks against tasks/*.toml."""
     from rvt2cli.tasks import all_tasks
 
@@ -111,6 +118,18 @@ def load(path: Path) -> dict:
         experiment = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e}); fix the file") from None
+    if "extends" in experiment:  # another experiment file with some of its keys changed
+        base_name = experiment.pop("extends")
+        if not isinstance(base_name, str):
+            raise UserError(f"{path}: extends = {base_name!r}; give another experiment file's name, e.g. \"rvt2_18_onegpu\"")
+        if "name" not in experiment:
+            raise UserError(f"{path}: extends {base_name} but gives no 'name' of its own; add one (its runs' folder)")
+        base_path = resolve(base_name)
+        if base_path.resolve() in _extending:
+            raise UserError(f"{path}: extends {base_name}, which extends it again; break the circle")
+        base = load(base_path, (*_extending, path.resolve()))
+        base = {k: v for k, v in base.items() if k != "published"}  # its results are not this file's
+        experiment = merged(base, experiment)
     sections = {table: experiment if table == "" else experiment.get(table, {}) for table in SCHEMA if "*" not in table}
     sections |= {f"eval.extra.{name}": extra for name, extra in experiment.get("eval", {}).get("extra", {}).items()}
     for table, section in sections.items():

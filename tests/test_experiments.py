@@ -11,6 +11,7 @@ import pytest
 from benchmarks import experiment as runner
 from rvt2cli.cli import build_parser
 from rvt2cli.cli.train import options_from
+from rvt2cli.errors import UserError
 from rvt2cli.runtime import usable_cores
 from rvt2cli.train.run_folder import model_config
 
@@ -194,6 +195,30 @@ def test_a_curve_evaluates_earlier_checkpoints_beside_the_last(tmp_path, capsys)
     assert "--eval-steps 2500,6000: the training keeps a checkpoint every 1000 steps before its last (6000)" in capsys.readouterr().err
     assert runner.main(["rvt2_18_onegpu", "--eval-steps", "two"]) == 2
     assert "--eval-steps two: give whole numbers" in capsys.readouterr().err
+
+
+def test_an_experiment_extends_another_with_only_what_it_changes(tmp_path):
+    """rvt2_18_onegpu_via is rvt2_18_onegpu with two tasks' experts and 3,000 steps: every other command is the same."""
+    base, via = (runner.load(runner.resolve(n)) for n in ("rvt2_18_onegpu", "rvt2_18_onegpu_via"))
+    assert via["train"]["options"] == base["train"]["options"] and via["published"]["raw"] != base["published"]["raw"]
+    settings = runner.Settings(out=tmp_path, workers=15)
+    base_run = runner.commands(base, runner.Settings(out=tmp_path, workers=15, steps=3000))
+    via_run = runner.commands(via, settings)
+    differing = [(a, b) for (_, a), (_, b) in zip(base_run, via_run) if a != b]
+    assert len(base_run) == len(via_run) and len(differing) == 1   # the training demos: the held-out tasks keep their experts
+    record = build_parser().parse_args(rvt2_arguments(differing[0][1]))
+    assert dict(record.expert) == {task: f"rvt2cli.record.rlbench18.{task}:expert_via_target"
+                                   for task in ("reach_and_drag", "slide_block_to_color_target")}
+    circle = tmp_path / "a.toml"
+    circle.write_text(f'extends = "{circle}"\nname = "a"\n')
+    with pytest.raises(UserError, match="extends .* which extends it again"):
+        runner.load(circle)
+    orphan = tmp_path / "b.toml"
+    orphan.write_text('extends = "rvt2_18_onegpu"\n')
+    with pytest.raises(UserError, match="gives no 'name' of its own"):
+        runner.load(orphan)
+    orphan.write_text('extends = "rvt2_18_onegpu"\nname = "b"\n')
+    assert "published" not in runner.load(orphan)   # another file's results are not this one's
 
 
 def test_another_renderer_for_every_phase_and_its_own_folder(capsys):
