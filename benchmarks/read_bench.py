@@ -5,7 +5,8 @@
 DEMOS are episode files or folders (recorded by `rvt2 record`; copied first, since extraction rewrites
 them). Times `extract_files` (what `rvt2 extract-keyframes` runs) and `load_samples` (what `rvt2 train`
 reads episodes with) with one process, and with up to --workers processes where given (at most one per
-runtime.FILES_PER_WORKER files, as the product decides; the table shows how many ran).
+runtime.FILES_PER_WORKER files, as the product decides; the table shows how many ran). Then `fit_clouds`,
+which `rvt2 train`'s pack runs to put every cloud in a row of 50,000 points, in one thread and in --workers.
 """
 
 import argparse
@@ -15,11 +16,17 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from benchmarks.machine import describe
 from rvt2cli import runtime
 from rvt2cli.data.paths import episode_paths
 from rvt2cli.keyframes.extract import extract_files
+from rvt2cli.train.options import TrainOptions
+from rvt2cli.train.packed import fit_clouds
 from rvt2cli.train.samples import load_samples
+
+MAX_POINTS = TrainOptions.max_points  # rvt2 train's default
 
 
 def measure(paths: list[Path], workers: int) -> dict:
@@ -30,9 +37,13 @@ def measure(paths: list[Path], workers: int) -> dict:
     samples = load_samples(paths, progress=False, workers=workers)
     load = time.perf_counter() - start
     processes = runtime.file_workers(workers, len(paths))
+    start = time.perf_counter()
+    fit_clouds(samples, list(range(len(samples))), MAX_POINTS, np.random.default_rng(0), threads=workers)
+    fit = time.perf_counter() - start
     return {"workers": workers, "processes": processes, "files": len(paths), "refused": len(refused), "extract_s": extract, "load_s": load,
             "extract_s_per_file": extract / len(paths), "load_s_per_file": load / len(paths), "samples": len(samples),
-            "points_per_sample": sum(len(x) for x in samples.xyz) / max(1, len(samples))}
+            "points_per_sample": sum(len(x) for x in samples.xyz) / max(1, len(samples)),
+            "fit_threads": workers, "fit_ms_per_sample": 1e3 * fit / max(1, len(samples))}
 
 
 def main() -> None:
@@ -49,10 +60,11 @@ def main() -> None:
         sizes = [p.stat().st_size for p in copies]
         runs = [measure(copies, w) for w in sorted({1, args.workers})]
     print(f"{len(copies)} episodes, {sum(sizes) / len(sizes) / 1e6:.2f} MB each")
-    print("| processes | extract-keyframes, s per file | load for training, s per file | samples | points per sample |")
-    print("|---|---|---|---|---|")
+    print("| processes | extract-keyframes, s per file | load for training, s per file | samples | points per sample | pack's rows, threads | ms per sample |")
+    print("|---|---|---|---|---|---|---|")
     for r in runs:
-        print(f"| {r['processes']} | {r['extract_s_per_file']:.3f} | {r['load_s_per_file']:.3f} | {r['samples']} | {r['points_per_sample']:.0f} |")
+        print(f"| {r['processes']} | {r['extract_s_per_file']:.3f} | {r['load_s_per_file']:.3f} | {r['samples']} | {r['points_per_sample']:.0f} "
+              f"| {r['fit_threads']} | {r['fit_ms_per_sample']:.2f} |")
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": describe(), "mb_per_file": sum(sizes) / len(sizes) / 1e6,
                                                "runs": runs}, indent=2))

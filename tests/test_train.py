@@ -516,13 +516,14 @@ def test_zoom_and_coarse_action_features_are_kept_with_the_run(tiny_dataset, tmp
 def test_packed_clouds_are_each_cloud_fitted_as_one_observation_is(tiny_dataset):
     """pack writes each recorded cloud into its zeroed row (`fit_points_into`); the rows are what
     `fit_points`, the single observation's path (deploy, export), makes of the same cloud with the same
-    random stream: subsampled in order where the cloud is larger than max_points, zero-padded where smaller."""
+    random stream: subsampled in order where the cloud is larger than max_points, zero-padded where smaller;
+    and the same however many threads copy them."""
     import numpy as np
 
     from rvt2cli.data.paths import episode_paths
     from rvt2cli.model.config import SMALL
     from rvt2cli.model.observation import fit_points
-    from rvt2cli.train.packed import pack
+    from rvt2cli.train.packed import fit_clouds, pack
     from rvt2cli.train.samples import load_samples
 
     samples = load_samples(episode_paths([str(tiny_dataset)]), progress=False)
@@ -539,6 +540,10 @@ def test_packed_clouds_are_each_cloud_fitted_as_one_observation_is(tiny_dataset)
         assert packed.count[row] == count == min(len(samples.xyz[i]), max_points)
         assert np.array_equal(packed.xyz[row].numpy(), xyz) and np.array_equal(packed.rgb[row].numpy(), rgb)
     assert 0 < subsampled < len(indices)
+    for threads in (1, 3):   # the rows are copied in threads; the subsets come from the one stream, in row order
+        xyz, rgb, count = fit_clouds(samples, indices, max_points, np.random.default_rng(3), threads=threads)
+        assert np.array_equal(xyz, packed.xyz.numpy()) and np.array_equal(rgb, packed.rgb.numpy())
+        assert np.array_equal(count, packed.count.numpy())
 
 
 def test_an_aim_offset_moves_the_held_targets_and_keeps_the_tcp_for_scoring(tiny_dataset):

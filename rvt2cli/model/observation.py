@@ -89,10 +89,22 @@ def fit_points_into(out_xyz: np.ndarray, out_rgb: np.ndarray, xyz: np.ndarray, r
                     rng: np.random.Generator | None = None) -> int:
     """`fit_points` into rows that are zero already (a packed array's [max_points, 3] rows): one copy of
     the cloud, none of the padding. Returns the real rows."""
-    max_points = len(out_xyz)
-    if len(xyz) > max_points:
-        rng = rng if rng is not None else np.random.default_rng(0)
-        keep = np.sort(rng.choice(len(xyz), max_points, replace=False))
+    return copy_points_into(out_xyz, out_rgb, xyz, rgb, points_kept(len(xyz), len(out_xyz), rng))
+
+
+def points_kept(count: int, max_points: int, rng: np.random.Generator | None = None) -> np.ndarray | None:
+    """Which of a cloud's `count` points `fit_points` keeps: a random `max_points` of them, in order, where
+    it has more (drawn from `rng`); None, all of them, where it has no more."""
+    if count <= max_points:
+        return None
+    rng = rng if rng is not None else np.random.default_rng(0)
+    return np.sort(rng.choice(count, max_points, replace=False))
+
+
+def copy_points_into(out_xyz: np.ndarray, out_rgb: np.ndarray, xyz: np.ndarray, rgb: np.ndarray,
+                     keep: np.ndarray | None) -> int:
+    """The points `keep` (`points_kept`; None: all) of a cloud into zeroed rows. Returns the real rows."""
+    if keep is not None:
         xyz, rgb = xyz[keep], rgb[keep]
     out_xyz[: len(xyz)], out_rgb[: len(xyz)] = xyz, rgb
     return len(xyz)

@@ -4,12 +4,14 @@ clouds on the training device or on the host (rvt2cli.train.clouds), the rest on
 the host computes a batch's targets from, in numpy arrays.
 """
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from rvt2cli.model.observation import fit_points_into
+from rvt2cli import runtime
+from rvt2cli.model.observation import copy_points_into, points_kept
 from rvt2cli.render.workspace import Workspace
 from rvt2cli.tasks import TCP_AIM
 from rvt2cli.train.samples import SampleSet
@@ -60,19 +62,37 @@ class PackedSamples:
         return np.asarray(idx, np.int64) // world
 
 
+def fit_clouds(samples: SampleSet, indices: list[int], max_points: int, rng: np.random.Generator,
+               threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples `indices`' clouds as rows of `max_points` points (`fit_points_into`, row by row): xyz, rgb and
+    each row's real points. The subsets are drawn from `rng` in row order, so the rows are the same however
+    many `threads` (default: the usable cores) copy them; the copies and the first touch of each row's memory
+    are most of the time, and numpy copies without holding the GIL."""
+    n = len(indices)
+    xyz = np.zeros((n, max_points, 3), np.float32)  # zero pages until written: each row's padding costs nothing
+    rgb = np.zeros((n, max_points, 3), np.uint8)
+    count = np.zeros(n, np.int64)
+    keeps = [points_kept(len(samples.xyz[i]), max_points, rng) for i in indices]
+
+    def fill(rows: range) -> None:
+        for row in rows:
+            i = indices[row]
+            count[row] = copy_points_into(xyz[row], rgb[row], samples.xyz[i], samples.rgb[i], keeps[row])
+
+    threads = max(1, threads or runtime.usable_cores())
+    chunk = max(1, -(-n // (threads * 8)))  # a few chunks a thread: rows differ in size
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(fill, [range(start, min(n, start + chunk)) for start in range(0, n, chunk)]))
+    return xyz, rgb, count
+
+
 def pack(samples: SampleSet, indices: list[int], lang: torch.Tensor, max_points: int, device, seed: int = 0,
          aim_offsets: dict[str, list[float]] | None = None,
          phrasings: tuple[np.ndarray, np.ndarray] | None = None, clouds_on_host: bool = False) -> PackedSamples:
     """`aim_offsets`: task -> aim offset (m, TCP frame) of a policy trained with them (tasks left out: none).
     `phrasings`: each instruction's phrasings and their count (`samples.phrasing_table`), drawn from in
     training batches. `clouds_on_host`: the clouds stay on the host (`clouds.clouds_on_host` decides)."""
-    rng = np.random.default_rng(seed)
-    n = len(indices)
-    xyz = np.zeros((n, max_points, 3), np.float32)  # zero pages until written: each row's padding costs nothing
-    rgb = np.zeros((n, max_points, 3), np.uint8)
-    count = np.zeros(n, np.int64)
-    for row, i in enumerate(indices):
-        count[row] = fit_points_into(xyz[row], rgb[row], samples.xyz[i], samples.rgb[i], rng)
+    xyz, rgb, count = fit_clouds(samples, indices, max_points, np.random.default_rng(seed))
     workspaces = [Workspace.from_bounds(samples.bounds[t]) for t in samples.tasks]
     pick = np.asarray(indices, dtype=np.int64)
     keyframe_index = np.asarray(samples.keyframe_index if samples.keyframe_index else [-1] * len(samples), np.int64)
