@@ -289,19 +289,21 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
             each = evaluations(evaluate, settings.evaluations, named_by_seed=settings.eval_seeds is not None)
-            # the last checkpoint first, then each earlier one asked for: (run folder or checkpoint, folder suffix)
-            checkpoints = [("", "")] + [(f"/checkpoints/step_{step:07d}", f"_step{step}")
-                                        for step in saved_steps(train, settings)]
-            runs = [(seed, name + suffix, *rest, checkpoint)
-                    for seed in seeds for name, *rest in each for checkpoint, suffix in checkpoints]
+            from rvt2cli.train.checkpoint import checkpoint_folder
+
+            # the last checkpoint (the run folder) first, then each earlier one asked for: (step or None, folder suffix)
+            steps = [(None, "")] + [(step, f"_step{step}") for step in saved_steps(train, settings)]
+            runs = [(seed, name + suffix, *rest, step) for seed in seeds for name, *rest in each for step, suffix in steps]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
             # an evaluation of some tasks only (options' `tasks`, as `rvt2 eval --tasks` reads it) runs their episodes alone
             tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts, _ in runs]
             shares = share_workers(settings.workers, [episodes_left(folder, episodes * count)
                                                       for folder, (_, _, episodes, *_), count in zip(folders, runs, tasks_of)])
-            for (seed, name, episodes, first_seed, extra_options, checkpoint), folder, share in zip(runs, folders, shares):
+            for (seed, name, episodes, first_seed, extra_options, step), folder, share in zip(runs, folders, shares):
                 resume = ["--resume"] if (folder / JOURNAL).exists() else []  # an interrupted evaluation
-                run.append((phase, rvt2 + ["eval", "--checkpoint", str(out / "runs" / f"seed{seed}") + checkpoint,
+                run_dir = out / "runs" / f"seed{seed}"
+                checkpoint = run_dir if step is None else checkpoint_folder(run_dir, step)
+                run.append((phase, rvt2 + ["eval", "--checkpoint", str(checkpoint),
                                            "--episodes", str(episodes), "--seed", str(first_seed), "--workers", str(share),
                                            "--device", settings.device, "--out", str(folder)]
                             + options(extra_options) + resume + ["--no-progress"]))

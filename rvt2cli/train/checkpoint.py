@@ -79,9 +79,14 @@ class Checkpoint:
                             "resume from a checkpoint written by `rvt2 train`") from None
 
 
+def checkpoint_folder(run_dir: Path, step: int) -> Path:
+    """Where `rvt2 train` keeps a run's checkpoint of this step."""
+    return Path(run_dir) / "checkpoints" / f"step_{step:07d}"
+
+
 def save_checkpoint(run_dir: Path, step: int, model: torch.nn.Module, cfg: ModelConfig, info: dict,
                     instructions: dict[str, torch.Tensor], training_state: dict) -> Path:
-    final = run_dir / "checkpoints" / f"step_{step:07d}"
+    final = checkpoint_folder(run_dir, step)
     with atomic_folder(final, replace=True) as tmp:  # a save of the same step (a resumed run) replaces it
         texts = sorted(instructions)
         config = {"rvt2_version": __version__, "checkpoint_format": CHECKPOINT_FORMAT, "step": step,

@@ -33,7 +33,7 @@ from safetensors.torch import load, load_file, save, save_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository root
 from rvt2cli.atomic import atomic_folder, atomic_open  # noqa: E402
-from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, STATE, WEIGHTS, resolve  # noqa: E402
+from rvt2cli.train.checkpoint import CONFIG, INSTRUCTIONS, STATE, WEIGHTS, checkpoint_folder, resolve  # noqa: E402
 
 PIECE = 15 * 2**20
 RUN_LOGS = ("run.json", "train.csv", "validation.csv")   # what a resumed run reads back from its folder
@@ -117,11 +117,11 @@ def restore(pieces_dir: Path, run: Path) -> None:
                              "instruction embeddings")
     else:  # sent whole by an earlier version of this script
         instructions = (pieces_dir / INSTRUCTIONS).read_bytes()
-    name = f"step_{manifest['step']:07d}"
     weights = {k: (v.float() if v.is_floating_point() else v).contiguous() for k, v in load(blob).items()}
     state = _join(pieces_dir, manifest["state"]["pieces"], manifest["state"]["sha256"], "training state") \
         if "state" in manifest else None
-    with atomic_folder(run / "checkpoints" / name, replace=True) as final:  # readable by all, as rvt2's own
+    folder = checkpoint_folder(run, manifest["step"])
+    with atomic_folder(folder, replace=True) as final:  # readable by all, as rvt2's own
         save_file(weights, str(final / WEIGHTS))
         shutil.copy(pieces_dir / CONFIG, final / CONFIG)
         (final / INSTRUCTIONS).write_bytes(instructions)
@@ -135,8 +135,8 @@ def restore(pieces_dir: Path, run: Path) -> None:
                     with atomic_open(run / log, "wb") as f:
                         f.write(tar.extractfile(log).read())
     with atomic_open(run / "last", "w") as f:
-        f.write(f"checkpoints/{name}\n")
-    print(f"{run}: checkpoint {name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights"
+        f.write(f"checkpoints/{folder.name}\n")
+    print(f"{run}: checkpoint {folder.name} restored ({sum(v.numel() for v in weights.values()) / 1e6:.1f} M weights"
           + ("; training state and logs: `rvt2 train --out RUN --resume` continues it)" if state is not None else ")"))
 
 
