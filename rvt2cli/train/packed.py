@@ -4,6 +4,7 @@ clouds on the training device or on the host (rvt2cli.train.clouds), the rest on
 the host computes a batch's targets from, in numpy arrays.
 """
 
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -65,24 +66,31 @@ class PackedSamples:
 def fit_clouds(samples: SampleSet, indices: list[int], max_points: int, rng: np.random.Generator,
                threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Samples `indices`' clouds as rows of `max_points` points (`fit_points_into`, row by row): xyz, rgb and
-    each row's real points. The subsets are drawn from `rng` in row order, so the rows are the same however
-    many `threads` (default: the usable cores) copy them; the copies and the first touch of each row's memory
-    are most of the time, and numpy copies without holding the GIL."""
+    each row's real points. The subsets are drawn from `rng` here, in row order, a chunk of rows at a time,
+    and the chunks' copies run in `threads` (default: the usable cores), so the rows are the same however
+    many threads copy them; the copies and the first touch of each row's memory are most of the time, and
+    numpy copies without holding the GIL. A few chunks a thread are in flight, their subsets' indices with them."""
     n = len(indices)
     xyz = np.zeros((n, max_points, 3), np.float32)  # zero pages until written: each row's padding costs nothing
     rgb = np.zeros((n, max_points, 3), np.uint8)
     count = np.zeros(n, np.int64)
-    keeps = [points_kept(len(samples.xyz[i]), max_points, rng) for i in indices]
 
-    def fill(rows: range) -> None:
-        for row in rows:
+    def fill(rows: range, keeps: list) -> None:
+        for row, keep in zip(rows, keeps):
             i = indices[row]
-            count[row] = copy_points_into(xyz[row], rgb[row], samples.xyz[i], samples.rgb[i], keeps[row])
+            count[row] = copy_points_into(xyz[row], rgb[row], samples.xyz[i], samples.rgb[i], keep)
 
     threads = max(1, threads or runtime.usable_cores())
-    chunk = max(1, -(-n // (threads * 8)))  # a few chunks a thread: rows differ in size
+    chunk = max(1, min(256, -(-n // (threads * 8))))  # rows differ in size: several chunks a thread
+    in_flight = deque()
     with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(fill, [range(start, min(n, start + chunk)) for start in range(0, n, chunk)]))
+        for start in range(0, n, chunk):
+            rows = range(start, min(n, start + chunk))
+            in_flight.append(pool.submit(fill, rows, [points_kept(len(samples.xyz[indices[r]]), max_points, rng) for r in rows]))
+            if len(in_flight) > 2 * threads:
+                in_flight.popleft().result()
+        for done in in_flight:
+            done.result()
     return xyz, rgb, count
 
 
