@@ -514,7 +514,7 @@ def test_zoom_and_coarse_action_features_are_kept_with_the_run(tiny_dataset, tmp
 
 
 def test_packed_clouds_are_each_cloud_fitted_as_one_observation_is(tiny_dataset):
-    """pack writes each recorded cloud into its zeroed row (`fit_points_into`); the rows are what
+    """pack writes each recorded cloud into its zeroed row (`copy_points_into`); the rows are what
     `fit_points`, the single observation's path (deploy, export), makes of the same cloud with the same
     random stream: subsampled in order where the cloud is larger than max_points, zero-padded where smaller;
     and the same however many threads copy them."""

@@ -82,14 +82,7 @@ def fit_points(xyz: np.ndarray, rgb: np.ndarray, max_points: int,
     after it if fewer. Returns (xyz [max_points, 3] float32, rgb [max_points, 3] like rgb, real rows)."""
     out_xyz = np.zeros((max_points, 3), np.float32)
     out_rgb = np.zeros((max_points, 3), rgb.dtype)
-    return out_xyz, out_rgb, fit_points_into(out_xyz, out_rgb, xyz, rgb, rng)
-
-
-def fit_points_into(out_xyz: np.ndarray, out_rgb: np.ndarray, xyz: np.ndarray, rgb: np.ndarray,
-                    rng: np.random.Generator | None = None) -> int:
-    """`fit_points` into rows that are zero already (a packed array's [max_points, 3] rows): one copy of
-    the cloud, none of the padding. Returns the real rows."""
-    return copy_points_into(out_xyz, out_rgb, xyz, rgb, points_kept(len(xyz), len(out_xyz), rng))
+    return out_xyz, out_rgb, copy_points_into(out_xyz, out_rgb, xyz, rgb, points_kept(len(xyz), max_points, rng))
 
 
 def points_kept(count: int, max_points: int, rng: np.random.Generator | None = None) -> np.ndarray | None:
@@ -103,7 +96,8 @@ def points_kept(count: int, max_points: int, rng: np.random.Generator | None = N
 
 def copy_points_into(out_xyz: np.ndarray, out_rgb: np.ndarray, xyz: np.ndarray, rgb: np.ndarray,
                      keep: np.ndarray | None) -> int:
-    """The points `keep` (`points_kept`; None: all) of a cloud into zeroed rows. Returns the real rows."""
+    """The points `keep` (`points_kept`; None: all) of a cloud into rows that are zero already (a packed
+    array's [max_points, 3] rows): one copy of the cloud, none of the padding. Returns the real rows."""
     if keep is not None:
         xyz, rgb = xyz[keep], rgb[keep]
     out_xyz[: len(xyz)], out_rgb[: len(xyz)] = xyz, rgb

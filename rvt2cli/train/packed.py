@@ -65,7 +65,7 @@ class PackedSamples:
 
 def fit_clouds(samples: SampleSet, indices: list[int], max_points: int, rng: np.random.Generator,
                threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Samples `indices`' clouds as rows of `max_points` points (`fit_points_into`, row by row): xyz, rgb and
+    """Samples `indices`' clouds as rows of `max_points` points (as `fit_points` fits one): xyz, rgb and
     each row's real points. The subsets are drawn from `rng` here, in row order, a chunk of rows at a time,
     and the chunks' copies run in `threads` (default: the usable cores), so the rows are the same however
     many threads copy them; the copies and the first touch of each row's memory are most of the time, and
