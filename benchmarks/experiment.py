@@ -29,8 +29,9 @@ training; the eval phase waits for both.
     python -m benchmarks.experiment rvt2_10demos --run --phase train,eval --gpus 2   # some phases, 2 GPUs
     python -m benchmarks.experiment rvt2_25demos --run --out data/h --rvt2 "python3 -m rvt2cli"
     python -m benchmarks.experiment rvt2_18_onegpu --run --steps 3000 --eval-seeds 20000-20049   # a schedule, on validation seeds
-    python -m benchmarks.experiment rvt2_18 --run --renderer nvidia --gpus 2 --eval-seeds 20000-20049 --eval-steps 1500,3000,4500
-                                       # a success-vs-steps curve: checkpoints of one schedule, on validation seeds
+    python -m benchmarks.experiment rvt2_18_via --run --renderer nvidia --gpus 2 --eval-seeds 20000-20049 \
+        --eval-steps 1500,3000,4500 --curve-episodes 25   # a success-vs-steps curve: one schedule's checkpoints,
+                                                          # on validation seeds (the earlier ones on 25 a task)
 
 The offline-GPU kit runs the same phases (`scripts/offline-gpu-host/gpu_onebox.sh experiment FILE PHASES`).
 """
@@ -91,6 +92,7 @@ class Settings:
     steps: int | None = None  # None: the experiment's; else another schedule's length (warmup as the file gives it)
     eval_seeds: tuple[int, int] | None = None  # (first, last): one evaluation on these seeds instead of the file's
     eval_steps: tuple[int, ...] = ()  # earlier checkpoints of each run evaluated as its last is (a success-vs-steps curve)
+    curve_episodes: int | None = None  # episodes per task at those earlier checkpoints (their first seeds); None: as the last
 
 
 def resolve(name: str) -> Path:
@@ -289,11 +291,15 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
                             + options(train.get("options", {})) + ["--no-progress"]))
         elif phase == "eval":
             each = evaluations(evaluate, settings.evaluations, named_by_seed=settings.eval_seeds is not None)
+
+            def fewer(episodes, step):  # an earlier checkpoint's evaluation may take only the first seeds of each task
+                return episodes if step is None or settings.curve_episodes is None else min(episodes, settings.curve_episodes)
             from rvt2cli.train.checkpoint import checkpoint_folder
 
             # the last checkpoint (the run folder) first, then each earlier one asked for: (step or None, folder suffix)
             steps = [(None, "")] + [(step, f"_step{step}") for step in saved_steps(train, settings)]
-            runs = [(seed, name + suffix, *rest, step) for seed in seeds for name, *rest in each for step, suffix in steps]
+            runs = [(seed, name + suffix, fewer(episodes, step), *rest, step)
+                    for seed in seeds for name, episodes, *rest in each for step, suffix in steps]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
             # an evaluation of some tasks only (options' `tasks`, as `rvt2 eval --tasks` reads it) runs their episodes alone
             tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts, _ in runs]
@@ -428,6 +434,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-steps", metavar="STEP,...", help="also evaluate these earlier checkpoints of each run "
                         "(multiples of the training's save-every), each as the last one is: a success-vs-steps curve "
                         "(evals/seedN_fromFIRST_stepSTEP)")
+    parser.add_argument("--curve-episodes", type=int, metavar="N", help="with --eval-steps: evaluate the earlier "
+                        "checkpoints on the first N seeds of each task only (the last one on all), so that a curve "
+                        "fits the machine's time")
     parser.add_argument("--renderer", choices=RENDERERS, help="every phase renders with this Vulkan driver instead of "
                         "the file's (e.g. nvidia where the file's lavapipe would take too long; demos and evaluations "
                         "still share it, and the default folder gains _RENDERER)")
@@ -457,6 +466,8 @@ def main(argv: list[str] | None = None) -> int:
             eval_steps = tuple(int(s) for s in args.eval_steps.split(",")) if args.eval_steps else ()
         except ValueError:
             raise UserError(f"--eval-steps {args.eval_steps}: give whole numbers, comma-separated, e.g. 2000,4000") from None
+        if args.curve_episodes is not None and (args.curve_episodes < 1 or not eval_steps):
+            raise UserError(f"--curve-episodes {args.curve_episodes}: give a whole number of at least 1, with --eval-steps")
         if args.renderer and args.renderer != experiment.get("renderer", "auto"):
             experiment = {**experiment, "renderer": args.renderer, "name": f"{experiment['name']}_{args.renderer}"}
         name = experiment["name"] + (f"_{args.steps}steps" if args.steps else "")
@@ -464,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), torchrun=tuple(shlex.split(args.torchrun)),
                             workers=args.workers, gpus=args.gpus,
                             device=args.device, training_seeds=seeds, steps=args.steps, eval_seeds=eval_seeds,
-                            eval_steps=eval_steps,
+                            eval_steps=eval_steps, curve_episodes=args.curve_episodes,
                             evaluations=tuple(n for n in args.evaluations.split(",") if n) if args.evaluations else None)
         phases = parse_phases(args.phase)
         run = commands(experiment, settings, phases)

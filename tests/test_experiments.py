@@ -197,6 +197,20 @@ def test_a_curve_evaluates_earlier_checkpoints_beside_the_last(tmp_path, capsys)
     assert "--eval-steps two: give whole numbers" in capsys.readouterr().err
 
 
+def test_a_curve_may_take_fewer_seeds_at_the_earlier_checkpoints(tmp_path, capsys):
+    """--curve-episodes 25: the earlier checkpoints on the first 25 seeds of each task, the last on all 50; the workers
+    follow the episodes; without --eval-steps it is refused."""
+    settings = runner.Settings(out=tmp_path, workers=30, eval_seeds=(20000, 20049), eval_steps=(1500, 3000, 4500),
+                               curve_episodes=25)
+    run = runner.commands(runner.load(runner.resolve("rvt2_18")), settings, ("eval",))
+    evals = [build_parser().parse_args(rvt2_arguments(argv)) for _, argv in run]
+    assert [(Path(a.out).name, a.seed, a.episodes, a.workers) for a in evals] == [
+        ("seed0_from20000", 20000, 50, 12), ("seed0_from20000_step1500", 20000, 25, 6),
+        ("seed0_from20000_step3000", 20000, 25, 6), ("seed0_from20000_step4500", 20000, 25, 6)]
+    assert runner.main(["rvt2_18", "--curve-episodes", "25"]) == 2
+    assert "--curve-episodes 25: give a whole number of at least 1, with --eval-steps" in capsys.readouterr().err
+
+
 def test_an_experiment_extends_another_with_only_what_it_changes(tmp_path):
     """rvt2_18_onegpu_via is rvt2_18_onegpu with two tasks' experts and 3,000 steps: every other command is the same."""
     base, via = (runner.load(runner.resolve(n)) for n in ("rvt2_18_onegpu", "rvt2_18_onegpu_via"))
