@@ -7,7 +7,8 @@ environment). A file may start from another (`extends = "rvt2_18_onegpu"`) and g
 changes, table by table (not the other's [published]). This module prints those commands (`--print`, the default) or runs them one after the
 other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
 
-    record    the training demos of every task, then their keyframes (`rvt2 extract-keyframes`); with
+    record    the training demos of every task, annotated with keyframes as they are written (`rvt2 extract-keyframes
+              --merge-refinements` afterwards where the file asks for `merge_refinements_mm`); with
               `hold_out_variations = true`, none of a task's held-out variations (`rvt2 record --hold-out-variations`)
     heldout   demos on seeds training never sees, scored offline
     train     one run per training seed (torchrun when --gpus > 1, the global batch kept)
@@ -273,7 +274,8 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
         experts = [a for task, spec in record.get("experts", {}).items() if task in tasks for a in ("--expert", f"{task}={spec}")]
         run.append((phase, rvt2 + ["record", "--task", ",".join(tasks), "--episodes", str(episodes), "--seed", str(first_seed),
                                    "--workers", workers_of(phase), "--out", str(out / folder), "--no-progress", *experts, *extra]))
-        run.append((phase, rvt2 + ["extract-keyframes", str(out / folder)] + merge))
+        if merge:   # `rvt2 record` annotated them with the default rule; this one merges re-aimings
+            run.append((phase, rvt2 + ["extract-keyframes", str(out / folder)] + merge))
 
     for phase in phases:
         if phase == "record":

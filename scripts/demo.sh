@@ -14,7 +14,7 @@ say "1/7 record expert demonstrations (ManiSkill + SAPIEN on the CPU)"
 for task in push_cube stack_cube; do
   $RVT2 record --task "$task" --episodes 5 --workers 2 --out "$OUT/demos"
 done
-say "2/7 find keyframes and training samples"
+say "2/7 keyframes and training samples (record wrote them; the rule again, as after changing its options)"
 $RVT2 extract-keyframes "$OUT/demos"
 say "3/7 one episode file"
 $RVT2 info "$OUT/demos/stack_cube_0000.mcap"

@@ -38,18 +38,14 @@ def cli():
 
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
-    """Two real stack_cube demos (three cameras at 64 px), with keyframes: the data of the train,
-    eval and export tests."""
-    from rvt2cli.data.paths import episode_paths
-    from rvt2cli.keyframes.extract import extract_file
+    """Two real stack_cube demos (three cameras at 64 px), with the keyframes `rvt2 record` writes into them: the
+    data of the train, eval and export tests."""
     from rvt2cli.record.recorder import RecordOptions, record
 
     out = tmp_path_factory.mktemp("tiny_dataset")
     summary = record("stack_cube", 2, out, seed=0,
                      options=RecordOptions(cameras=("front", "left_shoulder", "right_shoulder"), image_size=64))
     assert len(summary.successes) == 2
-    for path in episode_paths([str(out)]):
-        extract_file(path)
     return out
 
 

@@ -207,7 +207,7 @@ def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):
 
     run_dir, _ = tiny_checkpoint
     record("stack_cube", 1, tmp_path / "raw", options=RecordOptions(cameras=("front", "left_shoulder", "right_shoulder"),
-                                                                    image_size=32))
+                                                                    image_size=32, keyframes=False))
     assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "raw"), "no keyframes", "extract-keyframes")
     assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "raw", "--first-phrasing"),
                           "eval --offline scores each demo under the words its checkpoint was trained to read", "--first-phrasing")

@@ -117,7 +117,9 @@ def test_extract_keyframes_on_recorded_insert_peg(tmp_path):
     summary = record("insert_peg", 1, tmp_path, seed=2, options=RecordOptions(cameras=("front",), image_size=32))
     assert summary.counts() == {"success": 1}
     path = tmp_path / "insert_peg_0002.mcap"
+    recorded = read_episode(path).keyframes   # the recorder annotated the file as it wrote it
     annotation = extract_file(path)
+    assert recorded == annotation.keyframes and read_episode(path).keyframes == recorded
     kfs = annotation.keyframes.keyframes
     open_flags = [k.gripper_open for k in kfs]
     # reach above the peg (open) -> grasp (closes) -> pre-insert + refinements (closed) -> insert (last)
@@ -191,12 +193,13 @@ def test_extract_keyframes_cli_continues_past_bad_files(push_cube_dir, tmp_path,
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"not an mcap")
     good = push_cube_dir / "push_cube_0000.mcap"
+    before = good.read_bytes()
     r = cli("extract-keyframes", "--dry-run", bad, good)
     assert r.returncode == 2
     assert_one_line_error(r, "bad.mcap", "not an MCAP file")
     assert "push_cube_0000.mcap: " in r.stdout and "keyframes [" in r.stdout
     assert "1 of 2 files checked; failed: bad.mcap" in r.stdout
-    assert read_episode(good).keyframes is None  # dry run wrote nothing
+    assert good.read_bytes() == before  # dry run wrote nothing
 
 
 def test_record_unknown_task_lists_known_ones(cli):

@@ -155,7 +155,7 @@ def test_training_refuses_a_folder_with_files_of_its_own(tiny_dataset, tmp_path,
 def test_data_without_keyframes_is_refused(tmp_path, cli):
     from rvt2cli.record.recorder import RecordOptions, record
 
-    record("push_cube", 1, tmp_path, options=RecordOptions(cameras=("front",), image_size=32))
+    record("push_cube", 1, tmp_path, options=RecordOptions(cameras=("front",), image_size=32, keyframes=False))
     r = cli("train", "--data", tmp_path, "--out", tmp_path / "run", "--config", "small")
     assert_one_line_error(r, "push_cube_0000.mcap", "no keyframes", "rvt2 extract-keyframes")
 
@@ -252,7 +252,7 @@ def test_several_processes_train_on_the_data_process_0_read(tiny_dataset, tmp_pa
     assert "rank 0 of 2: the same" in r.stdout and "rank 1 of 2: the same" in r.stdout
 
     unannotated = tmp_path / "unannotated"
-    record("push_cube", 1, unannotated, options=RecordOptions(cameras=("front",), image_size=32))
+    record("push_cube", 1, unannotated, options=RecordOptions(cameras=("front",), image_size=32, keyframes=False))
     r = subprocess.run([str(torchrun), "--nproc-per-node", "2", "-m", "rvt2cli", "train", "--data", str(unannotated),
                         "--out", str(tmp_path / "bad"), "--config", "small", "--no-progress"],
                        capture_output=True, text=True, timeout=300, env=env)

@@ -11,7 +11,8 @@ def register(subparsers) -> None:
         "record", help="record expert demonstrations of a task into MCAP episode files",
         description="Run a task's scripted expert in the simulator (CPU) and write one MCAP file per successful "
                     "episode: dense robot and simulator state every control step, RGB-D images of the camera rig at "
-                    "the frames training uses. Seeds run upwards from --seed; the same command writes the same files.",
+                    "the frames training uses, and the keyframes and training samples (`rvt2 extract-keyframes`' rule). Seeds "
+                    "run upwards from --seed; the same command writes the same files.",
     )
     p.add_argument("--task", type=names, help="task name, or several separated by commas (see --list-tasks)")
     p.add_argument("--task-set", help="record every task of this named set (e.g. rlbench18; see --list-tasks)")

@@ -19,8 +19,7 @@ from rvt2cli.data.writer import McapChannels
 
 def write_keyframes(path: str | Path, annotation: KeyframeAnnotation) -> None:
     path = Path(path)
-    keyframes = annotation.to_json()
-    schemas.check(schemas.KEYFRAMES, keyframes, f"{path} keyframes")
+    schemas.check(schemas.KEYFRAMES, annotation.to_json(), f"{path} keyframes")   # before anything is written
     data = _check_readable(path)
     read_metadata(path, data)  # refuses foreign files and newer versions before anything is written
     metadata = list(make_reader(io.BytesIO(data)).iter_metadata())
@@ -31,7 +30,7 @@ def write_keyframes(path: str | Path, annotation: KeyframeAnnotation) -> None:
                 continue
             out.write_raw(msg.topic, msg.schema_name, msg.schema_encoding, msg.schema_data,
                           msg.message_encoding, msg.data, msg.log_time, msg.publish_time)
-        out.write_json(topics.KEYFRAMES, schemas.KEYFRAMES, keyframes, 0)
+        out.write_keyframes(annotation, str(path))
         for record in metadata:
             out.writer.add_metadata(record.name, record.metadata)
         out.finish()

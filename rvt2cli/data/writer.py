@@ -4,6 +4,7 @@
         w.write_instruction(...)
         for each frame: w.write_frame(...)
         for obs frames: w.write_observation(frame, cameras, cloud)
+        w.write_keyframes(annotation)   # optional: `rvt2 extract-keyframes` can add or replace them later
         w.finish(meta)          # metadata + footer, then the file appears under its final name
 
 Nothing appears under `path` until `finish()` returns; an exception (or a kill) leaves at most a
@@ -22,6 +23,7 @@ from rvt2cli import __version__
 from rvt2cli.atomic import AtomicFile, output_error
 from rvt2cli.data import messages, schemas, topics
 from rvt2cli.data.episode import CameraFrame, Cloud, EpisodeMeta
+from rvt2cli.data.keyframes import KeyframeAnnotation
 
 CHUNK_SIZE = 1 << 20
 
@@ -74,6 +76,12 @@ class McapChannels:
             self._schema_ids[schema_name] = self.writer.register_schema(schema_name, schema_encoding, schema_data)
         channel = self._channel_id(topic, self._schema_ids[schema_name], message_encoding)
         self.writer.add_message(channel, log_time=t_ns, data=data, publish_time=publish_ns)
+
+    def write_keyframes(self, annotation: KeyframeAnnotation, where: str) -> None:
+        """An episode's keyframes and training samples, on /annotations/keyframes (checked against its schema)."""
+        keyframes = annotation.to_json()
+        schemas.check(schemas.KEYFRAMES, keyframes, f"{where} keyframes")
+        self.write_json(topics.KEYFRAMES, schemas.KEYFRAMES, keyframes, 0)
 
     def write_episode_metadata(self, meta: EpisodeMeta) -> None:
         obj = meta.to_json_obj()
@@ -150,6 +158,9 @@ class EpisodeWriter:
         if cloud is not None:
             self._mcap.write_protobuf(topics.CLOUD, messages.point_cloud(cloud.xyz, cloud.rgb, t), t)
         self._obs_frames.append(frame)
+
+    def write_keyframes(self, annotation: KeyframeAnnotation) -> None:
+        self._mcap.write_keyframes(annotation, str(self.path))
 
     @property
     def obs_frames(self) -> list[int]:

@@ -31,15 +31,22 @@ def label_keyframes(gripper_command, arm_velocities, contacts, tcp_pose,
             for e, flag in zip(events, flags)]
 
 
-def annotate(ep: Episode, params: KeyframeParams = KeyframeParams()) -> Annotation:
-    robot = ep.robot
-    arm_velocities = ep.meta.robot.arm(robot.joint_velocities, robot.joint_names, str(ep.path))
-    keyframes = label_keyframes(robot.gripper_command, arm_velocities, robot.contacts, robot.tcp_pose, params, robot.near)
-    have_obs = set(ep.obs_frames)
-    starts = observation_starts(ep.num_frames, keyframes, params.obs_every)
+def annotate_trajectory(num_frames: int, obs_frames, gripper_command, arm_velocities, contacts, tcp_pose, near=None,
+                        params: KeyframeParams = KeyframeParams()) -> Annotation:
+    """A dense trajectory's keyframes and training samples (observation starts with images in `obs_frames`)."""
+    keyframes = label_keyframes(gripper_command, arm_velocities, contacts, tcp_pose, params, near)
+    have_obs = set(obs_frames)
+    starts = observation_starts(num_frames, keyframes, params.obs_every)
     samples = tuple(Sample(f, next_keyframe_index(f, keyframes)) for f in starts if f in have_obs)
     annotation = KeyframeAnnotation(keyframes=tuple(keyframes), samples=samples, params=params.to_dict())
     return Annotation(annotation, [f for f in starts if f not in have_obs])
+
+
+def annotate(ep: Episode, params: KeyframeParams = KeyframeParams()) -> Annotation:
+    robot = ep.robot
+    arm_velocities = ep.meta.robot.arm(robot.joint_velocities, robot.joint_names, str(ep.path))
+    return annotate_trajectory(ep.num_frames, ep.obs_frames, robot.gripper_command, arm_velocities, robot.contacts,
+                               robot.tcp_pose, robot.near, params)
 
 
 def extract_file(path, params: KeyframeParams = KeyframeParams(), dry_run: bool = False) -> Annotation:

@@ -2,7 +2,8 @@
 
 The expert runs without rendering; afterwards the scene is restored (`set_state_dict`) at the frames
 training needs and only those are rendered: frame 0, every `obs_every`-th frame and every keyframe of
-the default rule. Episodes use seeds seed, seed+1, ...; with several workers, episodes are accepted in
+the default rule. Each file also carries its keyframes and training samples (`rvt2 extract-keyframes`' rule
+with the recording's obs_every), found in the trajectory as it is written. Episodes use seeds seed, seed+1, ...; with several workers, episodes are accepted in
 seed order, so the same command always writes the same files. A task with variations spreads its
 episodes over them: the seed picks the variation (`rvt2cli.tasks.episode_variation`).
 """
@@ -17,7 +18,9 @@ import numpy as np
 from rvt2cli.atomic import ensure_folder
 from rvt2cli.data import EpisodeMeta, EpisodeWriter
 from rvt2cli.data.fusion import fuse
+from rvt2cli.data.keyframes import KeyframeAnnotation
 from rvt2cli.data.provenance import software_versions
+from rvt2cli.keyframes.extract import annotate_trajectory
 from rvt2cli.keyframes.rule import KeyframeParams, find_keyframes
 from rvt2cli.errors import UserError
 from rvt2cli.record.expert import ExpertRun, load_expert, run_expert
@@ -39,6 +42,7 @@ class RecordOptions:
     keep_failures: bool = False
     variations: str = "all"   # which the episodes spread over: all, seen (not the held-out split) or one index
     experts: tuple[tuple[str, str], ...] = ()  # (task, "module:function"): another expert than the task's
+    keyframes: bool = True    # annotate each episode as `rvt2 extract-keyframes` would, with obs_every, as it is written
 
     def task(self, name: str) -> Task:
         """The task as recorded: its expert replaced where `experts` names another."""
@@ -77,6 +81,19 @@ def observation_frames(num_frames: int, gripper_open, arm_velocities, obs_every:
     return sorted(set(range(0, num_frames, obs_every)) | {k.frame for k in keyframes} | {num_frames - 1})
 
 
+def recorded_keyframes(run: ExpertRun, robot: RobotFacts, obs_frames: list[int], obs_every: int) -> KeyframeAnnotation:
+    """The keyframes and samples `rvt2 extract-keyframes --obs-every N` finds in the written file, from the
+    trajectory in memory: the same arrays as the file gives back (its dtypes), so the same annotation."""
+    frames = run.frames
+    names = frames[0].state["joint_names"]
+    arm_velocities = robot.arm(np.array([f.state["joint_velocities"] for f in frames], dtype=np.float32), names)
+    near = [sorted(f.near) for f in frames] if all(f.near is not None for f in frames) else None
+    return annotate_trajectory(len(frames), obs_frames, np.array([f.gripper_command for f in frames], dtype=np.float32),
+                               arm_velocities, [sorted(f.contacts) for f in frames],
+                               np.array([f.state["tcp_pose"] for f in frames], dtype=np.float64), near,
+                               KeyframeParams(obs_every=obs_every)).keyframes
+
+
 def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOptions) -> Path:
     control_hz = float(env.unwrapped.control_freq)
     instruction, template_index = task.instruction(run.seed, run.variation)
@@ -97,6 +114,8 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
             images = capture_cameras(env)
             cloud = fuse(images, task.scene_bounds, options.voxel_size) if options.store_clouds else None
             writer.write_observation(t, images, cloud)
+        if options.keyframes:
+            writer.write_keyframes(recorded_keyframes(run, robot, writer.obs_frames, options.obs_every))
         meta = EpisodeMeta(
             task=task.name, env_id=task.env_id, seed=run.seed, success=run.success, expert=task.expert,
             num_frames=len(run.frames), control_hz=control_hz, scene_bounds=list(task.scene_bounds), cameras=cameras,

@@ -153,8 +153,8 @@ PY
     "${RVT2[@]}" record --task "$(echo $TASKS | tr ' ' ,)" --episodes "$EPISODES" --workers "$WORKERS" --out "$W/demos" \
       --no-progress 2>&1 | tail -20
     phase record $(( $(clock) - t ))
-    ;&
-  keyframes)
+    ;;
+  keyframes)  # the rule again over $W/demos (`rvt2 record` annotated them as it wrote them)
     t=$(clock)
     "${RVT2[@]}" extract-keyframes "$W/demos" 2>&1 | tail -1
     phase keyframes $(( $(clock) - t ))
@@ -239,7 +239,6 @@ PY
     t=$(clock)
     "${RVT2[@]}" record --task "$(echo ${HELDOUT_TASKS:-$TASKS} | tr ' ' ,)" --episodes "${HELDOUT_EPISODES:-5}" --seed 30000 \
       --workers "$WORKERS" --out "$W/heldout" --no-progress 2>&1 | tail -1
-    "${RVT2[@]}" extract-keyframes "$W/heldout" | tail -1
     phase heldout $(( $(clock) - t ))
     ;;
   train)  # RUN on NPROC GPUs (torchrun when more than one), BATCH samples per step in all
