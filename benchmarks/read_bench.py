@@ -7,6 +7,8 @@ them). Times `extract_files` (what `rvt2 extract-keyframes` runs) and `load_samp
 reads episodes with) with one process, and with up to --workers processes where given (at most one per
 runtime.FILES_PER_WORKER files, as the product decides; the table shows how many ran). Then `fit_clouds`,
 which `rvt2 train`'s pack runs to put every cloud in a row of 50,000 points, in one thread and in --workers.
+The loading process's own CPU time per file shows what it costs to receive the samples from the workers:
+one process receives every file's, so on many cores it, not the workers, sets the pace of the load.
 """
 
 import argparse
@@ -33,15 +35,16 @@ def measure(paths: list[Path], workers: int) -> dict:
     start = time.perf_counter()
     refused = [p for p, annotation in extract_files(paths, workers=workers) if isinstance(annotation, Exception)]
     extract = time.perf_counter() - start
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     samples = load_samples(paths, progress=False, workers=workers)
-    load = time.perf_counter() - start
+    load, receive = time.perf_counter() - start, time.process_time() - cpu   # this process's CPU, all its threads
     processes = runtime.file_workers(workers, len(paths))
     start = time.perf_counter()
     fit_clouds(samples, list(range(len(samples))), MAX_POINTS, np.random.default_rng(0), threads=workers)
     fit = time.perf_counter() - start
     return {"workers": workers, "processes": processes, "files": len(paths), "refused": len(refused), "extract_s": extract, "load_s": load,
-            "extract_s_per_file": extract / len(paths), "load_s_per_file": load / len(paths), "samples": len(samples),
+            "extract_s_per_file": extract / len(paths), "load_s_per_file": load / len(paths),
+            "reading_process_cpu_ms_per_file": 1e3 * receive / len(paths), "samples": len(samples),
             "points_per_sample": sum(len(x) for x in samples.xyz) / max(1, len(samples)),
             "fit_threads": workers, "fit_ms_per_sample": 1e3 * fit / max(1, len(samples))}
 
@@ -60,11 +63,12 @@ def main() -> None:
         sizes = [p.stat().st_size for p in copies]
         runs = [measure(copies, w) for w in sorted({1, args.workers})]
     print(f"{len(copies)} episodes, {sum(sizes) / len(sizes) / 1e6:.2f} MB each")
-    print("| processes | extract-keyframes, s per file | load for training, s per file | samples | points per sample | pack's rows, threads | ms per sample |")
-    print("|---|---|---|---|---|---|---|")
+    print("| processes | extract-keyframes, s per file | load for training, s per file | the loading process's CPU, ms per file "
+          "| samples | points per sample | pack's rows, threads | ms per sample |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in runs:
-        print(f"| {r['processes']} | {r['extract_s_per_file']:.3f} | {r['load_s_per_file']:.3f} | {r['samples']} | {r['points_per_sample']:.0f} "
-              f"| {r['fit_threads']} | {r['fit_ms_per_sample']:.2f} |")
+        print(f"| {r['processes']} | {r['extract_s_per_file']:.3f} | {r['load_s_per_file']:.3f} | {r['reading_process_cpu_ms_per_file']:.1f} "
+              f"| {r['samples']} | {r['points_per_sample']:.0f} | {r['fit_threads']} | {r['fit_ms_per_sample']:.2f} |")
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": describe(), "mb_per_file": sum(sizes) / len(sizes) / 1e6,
                                                "runs": runs}, indent=2))
