@@ -345,3 +345,23 @@ def test_run_executes_a_phase_and_times_it(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("LP_NUM_THREADS", "3")   # the caller's own limit is kept, and not printed
     assert runner.main([str(path), "--phase", "oracle"]) == 0   # printed: the renderer first
     assert capsys.readouterr().out.startswith("export RVT2_VULKAN=lavapipe\n# oracle\n")
+
+
+def test_success_against_training_time_from_published_runs(tmp_path):
+    """benchmarks.success_curve reads experiment folders as published (gzip journals, train/): one point per
+    evaluated checkpoint, the training's minutes to it from run.json and train.csv, a chart and the points."""
+    from benchmarks import success_curve
+
+    results = runner.REPOSITORY / "benchmarks/results"
+    two, three = (results / f"rvt2_18_onegpu_via_{name}" for name in ("2000steps_h200x2", "3000steps"))
+    chart, points = tmp_path / "curve.png", tmp_path / "curve.json"
+    assert success_curve.main(["--model", f"via={two}+{three}", "--seeds", "20000", "--chart", str(chart),
+                               "--json", str(points), "--x", "steps"]) == 0
+    via = json.loads(points.read_text())["via"]
+    assert [(p["step"], p["successes"], p["episodes"]) for p in via] == [(2000, 626, 900), (3000, 701, 900)]
+    for p, folder in zip(via, (two, three)):
+        run = json.loads(gzip.decompress((folder / "train/run.json.gz").read_bytes()))
+        assert abs(p["train_minutes"] - run["seconds"] / 60) < 1e-9   # the last checkpoint: the whole training
+    assert via[0]["ci95"][0] < via[0]["rate"] < via[0]["ci95"][1] and chart.read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit, match="LABEL=DIR"):
+        success_curve.main(["--model", str(two)])
