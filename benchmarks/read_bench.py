@@ -49,12 +49,39 @@ def measure(paths: list[Path], workers: int) -> dict:
             "fit_threads": workers, "fit_ms_per_sample": 1e3 * fit / max(1, len(samples))}
 
 
+def compare_handovers(paths: list[Path], workers: int, rounds: int) -> list[dict]:
+    """`load_samples` with the workers' clouds through files and through the result pipe, side by side, `rounds`
+    times: wall seconds and the loading process's CPU per file; the samples must be the same."""
+    runs, reference = [], None
+    for round_ in range(rounds):
+        for handover in ("files", "pipe"):
+            start, cpu = time.perf_counter(), time.process_time()
+            samples = load_samples(paths, progress=False, workers=workers, handover=handover)
+            load, receive = time.perf_counter() - start, time.process_time() - cpu
+            if reference is None:
+                reference = samples
+            elif not all(np.array_equal(a, b) for a, b in zip(reference.xyz + reference.rgb, samples.xyz + samples.rgb)):
+                raise SystemExit(f"read_bench: the {handover} handover gave other clouds")
+            runs.append({"round": round_, "handover": handover, "workers": workers, "files": len(paths), "load_s": load,
+                         "reading_process_cpu_ms_per_file": 1e3 * receive / len(paths), "samples": len(samples)})
+            print(f"round {round_}: {handover}: {load:.2f} s, the loading process's CPU {1e3 * receive / len(paths):.1f} ms a file")
+    return runs
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("demos", nargs="+")
     parser.add_argument("--workers", type=int, default=1, help="also measure with this many processes")
+    parser.add_argument("--handovers", type=int, metavar="ROUNDS", help="instead: the load alone with --workers, the "
+                        "clouds handed over through files and through the pipe, side by side, ROUNDS times")
     parser.add_argument("--json")
     args = parser.parse_args()
+    if args.handovers:
+        paths = episode_paths(args.demos)
+        runs = compare_handovers(paths, args.workers, args.handovers)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"machine": describe(), "runs": runs}, indent=2))
+        return
     with tempfile.TemporaryDirectory() as work:
         copies = []
         for path in episode_paths(args.demos):

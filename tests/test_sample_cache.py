@@ -85,18 +85,25 @@ def test_reading_episodes_in_worker_processes_gives_the_same_samples(tiny_datase
 
     from rvt2cli import runtime
     from rvt2cli.keyframes.extract import extract_files
+    from rvt2cli.train import cloud_spool
 
     paths = episode_paths([str(tiny_dataset)])
     one = load_samples(paths, progress=False)
     monkeypatch.setattr(runtime, "FILES_PER_WORKER", 1)
-    two = load_samples(paths, progress=False, workers=2)
-    assert (one.tasks, one.instructions, one.episodes, one.bounds, one.rigs) == \
-        (two.tasks, two.instructions, two.episodes, two.bounds, two.rigs)
-    for name in ("task_index", "instruction_index", "episode_index", "keyframe_start", "keyframe_index",
-                 "final_keyframe", "target_gripper_open", "target_ignore_collisions"):
-        assert getattr(one, name) == getattr(two, name), name
-    for name in ("xyz", "rgb", "proprio", "target_position", "target_quaternion"):
-        assert all(np.array_equal(a, b) for a, b in zip(getattr(one, name), getattr(two, name), strict=True)), name
+    monkeypatch.setattr(cloud_spool, "SHM", tmp_path / "shm")   # the clouds in flight: where the test can look
+    (tmp_path / "shm").mkdir()
+    for handover in ("files", "pipe"):   # the workers' clouds through files read in threads, or the result pipe
+        two = load_samples(paths, progress=False, workers=2, handover=handover)
+        assert (one.tasks, one.instructions, one.episodes, one.bounds, one.rigs) == \
+            (two.tasks, two.instructions, two.episodes, two.bounds, two.rigs)
+        for name in ("task_index", "instruction_index", "episode_index", "keyframe_start", "keyframe_index",
+                     "final_keyframe", "target_gripper_open", "target_ignore_collisions"):
+            assert getattr(one, name) == getattr(two, name), name
+        for name in ("xyz", "rgb", "proprio", "target_position", "target_quaternion"):
+            assert all(np.array_equal(a, b) for a, b in zip(getattr(one, name), getattr(two, name), strict=True)), name
+        assert all(a.dtype == b.dtype and a.shape == b.shape for a, b in zip(one.xyz + one.rgb, two.xyz + two.rgb))
+    assert list((tmp_path / "shm").iterdir()) == []   # the private folder and its files are gone
+    assert cloud_spool.spool_clouds(one.xyz, one.rgb, str(tmp_path / "missing")) is None   # the pipe takes over
 
     copies = {}
     for workers in (1, 2):

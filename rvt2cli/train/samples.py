@@ -4,6 +4,8 @@ A sample is the fused cloud at an observation frame, the proprio state there, th
 the next keyframe after it (position, orientation, gripper, collision flag) as the target.
 """
 
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,6 +15,7 @@ from tqdm import tqdm
 from rvt2cli import runtime
 from rvt2cli.errors import UserError
 from rvt2cli.model.observation import proprio_vector
+from rvt2cli.train.cloud_spool import SpooledClouds, spool_clouds, spool_folder, unspool_clouds
 
 
 # SampleSet's columns with one entry per sample; those in TABLE_OF index one of its tables.
@@ -166,10 +169,11 @@ def phrasing_table(samples: SampleSet) -> tuple[list[str], np.ndarray, np.ndarra
 
 def load_samples(paths: list[Path], include_failures: bool = False, progress: bool = True,
                  keyframe_starts_only: bool = False, cameras: tuple[str, ...] | None = None,
-                 tasks: list[str] | None = None, workers: int = 1) -> SampleSet:
+                 tasks: list[str] | None = None, workers: int = 1, handover: str = "files") -> SampleSet:
     """Read every episode's samples (of these tasks only, if given), in the order given, with up to
-    `workers` processes (`runtime.map_over_files`; the result is the same). Refuses, in one line, files
-    without keyframes."""
+    `workers` processes (`runtime.map_over_files`; the result is the same). The processes hand their clouds
+    over through files, read here in threads (`cloud_spool`), or with `handover="pipe"` through the pool's
+    result pipe; the samples are the same. Refuses, in one line, files without keyframes."""
     from rvt2cli.data import topics
     from rvt2cli.data.reader import read_episode_overview
 
@@ -189,14 +193,49 @@ def load_samples(paths: list[Path], include_failures: bool = False, progress: bo
         folder = unannotated[0].parent
         raise UserError(f"{names}: no keyframes; run `rvt2 extract-keyframes {folder}/` first")
     samples = SampleSet()
-    parts = runtime.map_over_files(episode_samples, usable, keyframe_starts_only, cameras, workers=workers)
-    for part in tqdm(parts, total=len(usable), desc="load samples", unit="ep", disable=not progress):
-        samples.extend(part)
+    bar = tqdm(total=len(usable), desc="load samples", unit="ep", disable=not progress)
+    if handover == "files" and runtime.file_workers(workers, len(usable)) > 1:
+        for part in _parts_through_files(usable, keyframe_starts_only, cameras, workers):
+            samples.extend(part)
+            bar.update()
+    else:
+        for part in runtime.map_over_files(episode_samples, usable, keyframe_starts_only, cameras, workers=workers):
+            samples.extend(part)
+            bar.update()
+    bar.close()
     if len(samples) == 0:
         raise UserError(f"no training samples in {len(paths)} file(s)" + (f" ({len(failures)} failed episodes skipped)" if failures else "")
                         + (f" of the tasks {', '.join(tasks)}" if tasks is not None else ""))
     samples.skipped_failures = len(failures)
     return samples
+
+
+def _samples_clouds_spooled(path: Path, keyframe_starts_only: bool, cameras, spool: str) -> tuple[SampleSet, SpooledClouds | None]:
+    """`episode_samples` in a reader process, its clouds written to a file of `spool` (None: they stay in the set)."""
+    part = episode_samples(path, keyframe_starts_only, cameras)
+    if (spooled := spool_clouds(part.xyz, part.rgb, spool)) is None:
+        return part, None
+    part.xyz, part.rgb = [], []
+    return part, spooled
+
+
+def _parts_through_files(paths: list[Path], keyframe_starts_only: bool, cameras, workers: int):
+    """Each episode's samples, in order, the clouds read back from the readers' files by a few threads at once."""
+    threads = max(2, min(8, runtime.usable_cores() // 4))
+    with spool_folder() as spool, ThreadPoolExecutor(threads) as receivers:
+        def receive(part, spooled):
+            if spooled is not None:
+                part.xyz, part.rgb = unspool_clouds(spooled)
+            return part
+
+        in_flight = deque()
+        for part, spooled in runtime.map_over_files(_samples_clouds_spooled, paths, keyframe_starts_only, cameras, spool,
+                                                    workers=workers):
+            in_flight.append(receivers.submit(receive, part, spooled))
+            while len(in_flight) > 2 * threads or (in_flight and in_flight[0].done()):
+                yield in_flight.popleft().result()
+        while in_flight:
+            yield in_flight.popleft().result()
 
 
 def select_samples(samples: SampleSet, episodes_per_task: int | None = None, keyframe_starts_only: bool = False) -> list[int]:
