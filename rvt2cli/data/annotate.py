@@ -11,7 +11,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from rvt2cli.atomic import atomic_open
-from rvt2cli.data import schemas, topics
+from rvt2cli.data import topics
 from rvt2cli.data.keyframes import KeyframeAnnotation
 from rvt2cli.data.reader import _check_readable, iter_raw_messages, read_metadata
 from rvt2cli.data.writer import McapChannels
@@ -19,7 +19,6 @@ from rvt2cli.data.writer import McapChannels
 
 def write_keyframes(path: str | Path, annotation: KeyframeAnnotation) -> None:
     path = Path(path)
-    schemas.check(schemas.KEYFRAMES, annotation.to_json(), f"{path} keyframes")   # before anything is written
     data = _check_readable(path)
     read_metadata(path, data)  # refuses foreign files and newer versions before anything is written
     metadata = list(make_reader(io.BytesIO(data)).iter_metadata())

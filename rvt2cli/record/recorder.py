@@ -81,12 +81,10 @@ def observation_frames(num_frames: int, gripper_open, arm_velocities, obs_every:
     return sorted(set(range(0, num_frames, obs_every)) | {k.frame for k in keyframes} | {num_frames - 1})
 
 
-def recorded_keyframes(run: ExpertRun, robot: RobotFacts, obs_frames: list[int], obs_every: int) -> KeyframeAnnotation:
+def recorded_keyframes(run: ExpertRun, arm_velocities: np.ndarray, obs_frames: list[int], obs_every: int) -> KeyframeAnnotation:
     """The keyframes and samples `rvt2 extract-keyframes --obs-every N` finds in the written file, from the
     trajectory in memory: the same arrays as the file gives back (its dtypes), so the same annotation."""
     frames = run.frames
-    names = frames[0].state["joint_names"]
-    arm_velocities = robot.arm(np.array([f.state["joint_velocities"] for f in frames], dtype=np.float32), names)
     near = [sorted(f.near) for f in frames] if all(f.near is not None for f in frames) else None
     return annotate_trajectory(len(frames), obs_frames, np.array([f.gripper_command for f in frames], dtype=np.float32),
                                arm_velocities, [sorted(f.contacts) for f in frames],
@@ -108,14 +106,15 @@ def write_episode(env, task: Task, run: ExpertRun, path: Path, options: RecordOp
                                gripper_command=frame.gripper_command, action=frame.action, contacts=frame.contacts,
                                tcp_pose=frame.state["tcp_pose"], sim_state=frame.sim, near=frame.near)
         gripper_open = [f.gripper_command > 0 for f in run.frames]
-        arm_velocities = robot.arm(np.array([f.state["joint_velocities"] for f in run.frames]), run.frames[0].state["joint_names"])
+        arm_velocities = robot.arm(np.array([f.state["joint_velocities"] for f in run.frames], dtype=np.float32),  # as read back
+                                   run.frames[0].state["joint_names"])
         for t in observation_frames(len(run.frames), gripper_open, arm_velocities, options.obs_every):
             restore_sim_state(env, run.frames[t].sim)
             images = capture_cameras(env)
             cloud = fuse(images, task.scene_bounds, options.voxel_size) if options.store_clouds else None
             writer.write_observation(t, images, cloud)
         if options.keyframes:
-            writer.write_keyframes(recorded_keyframes(run, robot, writer.obs_frames, options.obs_every))
+            writer.write_keyframes(recorded_keyframes(run, arm_velocities, writer.obs_frames, options.obs_every))
         meta = EpisodeMeta(
             task=task.name, env_id=task.env_id, seed=run.seed, success=run.success, expert=task.expert,
             num_frames=len(run.frames), control_hz=control_hz, scene_bounds=list(task.scene_bounds), cameras=cameras,
