@@ -24,7 +24,7 @@ import json
 import tomllib
 from pathlib import Path
 
-from rvt2cli.eval.journal import NAME as JOURNAL, read_journal
+from rvt2cli.eval.journal import NAME as JOURNAL, copy_in, read_journal
 from rvt2cli.eval.report import build_report, wilson_interval
 
 
@@ -69,11 +69,10 @@ def phrasing_filter(item: str):
 
 
 def journal_of(folder: Path) -> Path:
-    """An eval folder's journal: `rvt2 eval`'s episodes.jsonl, or the gzip copy kept in benchmarks/results."""
-    for name in (JOURNAL, JOURNAL + ".gz"):
-        if (folder / name).exists():
-            return folder / name
-    raise SystemExit(f"results_table: {folder} has no {JOURNAL}(.gz); give an `rvt2 eval --out` folder")
+    """An eval folder's journal: `rvt2 eval`'s episodes.jsonl, or the compressed copy kept in benchmarks/results."""
+    if (path := copy_in(folder, JOURNAL)) is None:
+        raise SystemExit(f"results_table: {folder} has no {JOURNAL}(.gz, .xz); give an `rvt2 eval --out` folder")
+    return path
 
 
 def load_models(models: str) -> list[dict]:

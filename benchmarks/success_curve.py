@@ -4,7 +4,7 @@
         [--x minutes|steps] [--chart docs/img/success_curve.png] [--json curve.json]
 
 DIR is an experiment's folder (`python -m benchmarks.experiment --out`, or its copy under benchmarks/results/):
-its training (runs/seed0/ or train/: run.json and train.csv, gzip or not) and its evaluations, of the last
+its training (runs/seed0/ or train/: run.json and train.csv, compressed or not) and its evaluations, of the last
 checkpoint (evals/seed0_fromFIRST) and of earlier ones (evals/seed0_fromFIRST_stepS: `--eval-steps`). Several
 folders joined with + are one model's points, e.g. schedules of different lengths. A point is a checkpoint: its
 step, the training's wall time up to it (run.json's seconds, shared out over the steps by train.csv's logged
@@ -16,7 +16,6 @@ of a model's folders share, e.g. validation seeds 20000).
 
 import argparse
 import csv
-import gzip
 import io
 import json
 import re
@@ -24,18 +23,16 @@ import sys
 from pathlib import Path
 
 from benchmarks.results_table import journal_of
-from rvt2cli.eval.journal import read_journal
+from rvt2cli.eval.journal import copy_in, read_journal, read_text
 from rvt2cli.eval.report import wilson_interval
 
 EVAL_FOLDER = re.compile(r"seed(?P<seed>\d+)_from(?P<first>\d+)(?:_step(?P<step>\d+))?")
 
 
 def _text(folder: Path, name: str) -> str:
-    for path, opener in ((folder / name, open), (folder / f"{name}.gz", gzip.open)):
-        if path.exists():
-            with opener(path, "rt") as f:
-                return f.read()
-    raise SystemExit(f"success_curve: {folder} has no {name}(.gz); give an experiment folder (runs/seed0/ or train/)")
+    if (path := copy_in(folder, name)) is None:
+        raise SystemExit(f"success_curve: {folder} has no {name}(.gz, .xz); give an experiment folder (runs/seed0/ or train/)")
+    return read_text(path)
 
 
 def training(folder: Path, seed: int) -> tuple[dict, list[tuple[int, float]]]:

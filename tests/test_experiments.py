@@ -348,7 +348,7 @@ def test_run_executes_a_phase_and_times_it(tmp_path, capsys, monkeypatch):
 
 
 def test_success_against_training_time_from_published_runs(tmp_path):
-    """benchmarks.success_curve reads experiment folders as published (gzip journals, train/): one point per
+    """benchmarks.success_curve reads experiment folders as published (gzip or xz journals, train/): one point per
     evaluated checkpoint, the training's minutes to it from run.json and train.csv, a chart and the points."""
     from benchmarks import success_curve
 
@@ -363,5 +363,13 @@ def test_success_against_training_time_from_published_runs(tmp_path):
         run = json.loads(gzip.decompress((folder / "train/run.json.gz").read_bytes()))
         assert abs(p["train_minutes"] - run["seconds"] / 60) < 1e-9   # the last checkpoint: the whole training
     assert via[0]["ci95"][0] < via[0]["rate"] < via[0]["ci95"][1] and chart.read_bytes()[:4] == b"\x89PNG"
+    # a curve of one training, its journals kept as xz: the earlier checkpoints on fewer seeds, each one's minutes
+    # up to it, in order
+    curve = results / "rvt2_18_via_h200x4"
+    assert success_curve.main(["--model", f"curve={curve}", "--seeds", "20000", "--json", str(points)]) == 0
+    points_of_curve = json.loads(points.read_text())["curve"]
+    assert [(p["step"], p["episodes"]) for p in points_of_curve] == [(1500, 450), (3000, 450), (4500, 450), (6000, 900)]
+    minutes = [p["train_minutes"] for p in points_of_curve]
+    assert minutes == sorted(minutes) and abs(minutes[-1] - json.loads(gzip.decompress((curve / "train/run.json.gz").read_bytes()))["seconds"] / 60) < 1e-9
     with pytest.raises(SystemExit, match="LABEL=DIR"):
         success_curve.main(["--model", str(two)])

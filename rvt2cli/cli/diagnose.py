@@ -18,7 +18,7 @@ def _checkpoint_and_demos(p) -> None:
 
 
 def _target_choice(p):
-    p.add_argument("journals", nargs="+", metavar="JOURNAL", help="evaluation journals (episodes.jsonl or episodes.jsonl.gz)")
+    p.add_argument("journals", nargs="+", metavar="JOURNAL", help="evaluation journals (episodes.jsonl, .gz or .xz)")
     p.add_argument("--source", choices=("policy", "oracle"), default="policy", help="whose episodes (default policy)")
     p.add_argument("--via", action="store_true",
                    help="the policy learnt from experts that stop above the named target first: report its stops too")

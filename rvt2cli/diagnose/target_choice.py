@@ -6,7 +6,7 @@ on it.
 
 Each policy episode (or the oracle's: the expert's keyframes, which choose the named target every time) of
 reach_and_drag or slide_block_to_color_target in the evaluation journals (`rvt2 eval`'s episodes.jsonl, or its
-gzip copy) is rebuilt from its seed and variation, which lay out the scene as the
+compressed copy) is rebuilt from its seed and variation, which lay out the scene as the
 evaluation saw it. The push is the first move between two keyframes near the table (both under
 `SWEEP_HEIGHT_M`) longer than `SWEEP_MIN_M`: the stick dragging the cube, or the closed fingers sliding the
 block. The chosen target is the one whose direction from the object's start is nearest to the push's, where
@@ -142,7 +142,7 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
 
 
 def read_records(journals) -> list[dict]:
-    """The episode records of evaluation journals (episodes.jsonl, or its gzip copy)."""
+    """The episode records of evaluation journals (episodes.jsonl, or its compressed copy)."""
     records = []
     for path in journals:
         try:

@@ -9,6 +9,7 @@ the episodes the journal does not have yet.
 
 import gzip
 import json
+import lzma
 import os
 from pathlib import Path
 
@@ -17,6 +18,19 @@ from rvt2cli.errors import UserError
 
 NAME = "episodes.jsonl"
 FORMAT = 1
+# published results keep their journals (and training logs) compressed: gzip, or xz where size matters (3x smaller)
+COMPRESSED = {".gz": gzip.decompress, ".xz": lzma.decompress}
+
+
+def read_text(path: Path) -> str:
+    """A text file as written, or its .gz or .xz copy, by its suffix."""
+    decompress = COMPRESSED.get(path.suffix)
+    return decompress(path.read_bytes()).decode() if decompress else path.read_text()
+
+
+def copy_in(folder: Path, name: str) -> Path | None:
+    """`name` in `folder`, or its compressed copy; None where there is neither."""
+    return next((p for p in (folder / name, *(folder / f"{name}{s}" for s in COMPRESSED)) if p.exists()), None)
 
 
 def episode_key(record: dict) -> tuple[str, str, int]:
@@ -24,9 +38,9 @@ def episode_key(record: dict) -> tuple[str, str, int]:
 
 
 def read_journal(path: Path) -> tuple[dict, list[dict]]:
-    """(plan, episode records) of a journal (or of its gzip copy, as kept with published results); a last line
-    cut off by a kill is left out."""
-    text = gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
+    """(plan, episode records) of a journal (or of its compressed copy, as kept with published results); a last
+    line cut off by a kill is left out."""
+    text = read_text(path)
     lines = text.split("\n")[:-1]  # what follows the last newline is an unfinished line
     try:
         plan = json.loads(lines[0])["plan"]
