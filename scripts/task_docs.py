@@ -38,9 +38,10 @@ The runs on rvt2-18 are experiment files (`experiments/`, docs/RESULTS.md): `rvt
 per task, the two colour tasks' experts stopping above the named target first, 6,000 steps at batch 192, 100
 evaluation seeds per task in two ranges of 50 reported apart, and the held-out paraphrases), `rvt2_18` (the same
 with RLBench's paths for those two experts), `rvt2_18_25demos`, and the two colour tasks alone (`rvt2_18_colour`,
-`rvt2_18_colour_via`; `rvt2 record --expert TASK=module:function`); planned: `rvt2_18_10demos`, `rvt_18` (RVT for
-the same training time), `rvt2_18_unseen` (trained without the held-out variations of the four compositional
-tasks, evaluated on them) and `rvt2_18_phrasings` (`rvt2 train --phrasings all`). `python -m benchmarks.results_table ... --paper
+`rvt2_18_colour_via`; `rvt2 record --expert TASK=module:function`); planned, each on `rvt2_18_via`'s experts and
+renderer: `rvt2_18_via_10demos` and `rvt2_18_via_25demos`, `rvt_18` (RVT for the same training time),
+`rvt2_18_unseen` (trained without the held-out variations of the four compositional tasks, evaluated on them) and
+`rvt2_18_phrasings` (`rvt2 train --phrasings all`). `python -m benchmarks.results_table ... --paper
 benchmarks/paper_rlbench18.toml#rvt2` sets a results table beside the paper's (RVT-2, RVT and PerAct, per task).
 
 """  # the task sets and the runs on them, before the table
