@@ -30,6 +30,21 @@ def _target_choice(p):
     return build
 
 
+def _oracle_gap(p):
+    p.add_argument("journals", nargs="+", metavar="JOURNAL", help="the policy's evaluation journals (episodes.jsonl, .gz or .xz)")
+    p.add_argument("--oracle", action="append", required=True, metavar="ORACLE_JOURNAL",
+                   help="a journal of `rvt2 eval --oracle` on the same tasks and seeds (repeat for several)")
+    p.add_argument("--tasks", type=names, help="comma-separated: only these tasks (default every task in both)")
+    p.add_argument("--near-mm", type=POSITIVE, default=20.0,
+                   help="count the failures whose nearest keyframe came within this many mm (default 20)")
+
+    def build(args):
+        from rvt2cli.diagnose import oracle_gap
+
+        return oracle_gap, oracle_gap.report(args.journals, args.oracle, args.tasks, args.near_mm)
+    return build
+
+
 def _instruction_swap(p):
     _checkpoint_and_demos(p)
     p.add_argument("--decides-mm", type=POSITIVE, default=20.0,
@@ -132,6 +147,10 @@ DIAGNOSTICS = {
     "insertion-stops": (_insertion_stops, "where a policy's first insertion stops, pushed straight (journal)",
                         "Where does a policy's first insertion leave the held object when it is pushed straight, and "
                         "which of those does the executor's insertion search bring in?", "an evaluation journal"),
+    "oracle-gap": (_oracle_gap, "which of the expert's keyframes a failing policy misses (journals)",
+                   "Which of the expert's keyframes does a failing policy never reach? Each keyframe of the oracle's "
+                   "episode against the policy's nearest on the same task and seed, successes and failures apart.",
+                   "the policy's and the oracle's evaluation journals"),
     "instruction-swap": (_instruction_swap, "does the instruction decide where the policy goes? (checkpoint + demos)",
                          "Does the instruction decide where the policy goes? Each observation predicted under its own "
                          "instruction and under every other variation's.", "a checkpoint and annotated demos"),

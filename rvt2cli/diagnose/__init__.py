@@ -2,6 +2,7 @@
 question with a table for an answer (`rvt2 diagnose NAME`, docs/DIAGNOSE.md):
 
 - `target_choice`: which target a push went for (the colour tasks), from an evaluation journal;
+- `oracle_gap`: which of the expert's keyframes a failing policy never reaches (policy and oracle journals);
 - `instruction_swap`: does the instruction decide where the policy goes (checkpoint + demos);
 - `phrasings`: where a phrasing the policy misreads moves its keyframes (checkpoint + demos);
 - `stage2_blind`: where stage 2's zoomed box holds nothing to place the keyframe by (checkpoint + demos);
