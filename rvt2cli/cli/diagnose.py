@@ -68,6 +68,18 @@ def _phrasings(p):
     return build
 
 
+def _paraphrase_neighbours(p):
+    p.add_argument("--tasks", type=names, help="comma-separated tasks (default: every task of --task-set)")
+    p.add_argument("--task-set", default="rlbench18", help="the tasks of this named set (default rlbench18)")
+
+    def build(args):
+        from rvt2cli.diagnose import paraphrase_neighbours
+        from rvt2cli.tasks import tasks_of_set
+
+        return paraphrase_neighbours, paraphrase_neighbours.report(args.tasks or tasks_of_set(args.task_set))
+    return build
+
+
 def _stage2_blind(p):
     _checkpoint_and_demos(p)
     p.add_argument("--min-points", type=NON_NEGATIVE, default=200,
@@ -157,6 +169,10 @@ DIAGNOSTICS = {
     "phrasings": (_phrasings, "which phrasings the policy misreads, and where (checkpoint + demos)",
                   "Where does a phrasing the policy misreads move its keyframes? Each keyframe start predicted under "
                   "every phrasing of its variation, trained and held out.", "a checkpoint and annotated demos"),
+    "paraphrase-neighbours": (_paraphrase_neighbours, "does the encoder place each paraphrase nearest its own variation? (tasks)",
+                              "Does the instruction encoder itself place each held-out paraphrase nearest a trained "
+                              "phrasing of its own variation? Before any training: the words as the policy reads them.",
+                              "the tasks' phrasings, no checkpoint"),
     "target-choice": (_target_choice, "which target each push went for: the named colour or another (journals)",
                       "Which target did each push of reach_and_drag and slide_block_to_color_target go for, the named "
                       "colour or another?", "evaluation journals"),
