@@ -15,8 +15,8 @@ from collections import defaultdict
 
 import numpy as np
 
-from rvt2cli.diagnose.target_choice import read_records
 from rvt2cli.errors import UserError
+from rvt2cli.eval.journal import read_records
 
 
 def nearest_mm(policy_steps: list[dict], oracle_steps: list[dict]) -> list[float]:

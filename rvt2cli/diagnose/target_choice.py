@@ -21,12 +21,11 @@ nearest the named target and how often the push then went for the target it had 
 """
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from rvt2cli.errors import UserError
-from rvt2cli.eval.journal import read_journal
+from rvt2cli.eval.journal import read_records
 from rvt2cli.eval.report import wilson_interval
 from rvt2cli.tasks import get_task
 
@@ -139,17 +138,6 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
                          pushes_after_stop=sum(r["chosen"] is not None for r in stops),
                          pushes_to_stop_target=sum(r["chosen"] == r["stopped_above"] for r in stops))
     return out
-
-
-def read_records(journals) -> list[dict]:
-    """The episode records of evaluation journals (episodes.jsonl, or its compressed copy)."""
-    records = []
-    for path in journals:
-        try:
-            records += read_journal(Path(path))[1]
-        except OSError as error:
-            raise UserError(f"{path}: cannot read it ({error.strerror}); give an evaluation's episodes.jsonl") from None
-    return records
 
 
 def report(journals, source: str = "policy", via: bool = False) -> dict:

@@ -53,6 +53,18 @@ def read_journal(path: Path) -> tuple[dict, list[dict]]:
         raise UserError(f"{path}: damaged journal line; choose another --out") from None
 
 
+def read_records(journals) -> list[dict]:
+    """The episode records of several journals (or their compressed copies), in order; one that cannot be read
+    is refused in one line."""
+    records = []
+    for path in journals:
+        try:
+            records += read_journal(Path(path))[1]
+        except OSError as error:
+            raise UserError(f"{path}: cannot read it ({error.strerror}); give an evaluation's episodes.jsonl") from None
+    return records
+
+
 class Journal:
     def __init__(self, out_dir: Path, plan: dict, resume: bool):
         self.path = out_dir / NAME

@@ -3,9 +3,10 @@
 The expert runs without rendering; afterwards the scene is restored (`set_state_dict`) at the frames
 training needs and only those are rendered: frame 0, every `obs_every`-th frame and every keyframe of
 the default rule. Each file also carries its keyframes and training samples (`rvt2 extract-keyframes`' rule
-with the recording's obs_every), found in the trajectory as it is written. Episodes use seeds seed, seed+1, ...; with several workers, episodes are accepted in
-seed order, so the same command always writes the same files. A task with variations spreads its
-episodes over them: the seed picks the variation (`rvt2cli.tasks.episode_variation`).
+with the recording's obs_every), found in the trajectory as it is written. Episodes use seeds seed, seed+1,
+...; with several workers, episodes are accepted in seed order, so the same command always writes the same
+files. A task with variations spreads its episodes over them: the seed picks the variation
+(`rvt2cli.tasks.episode_variation`).
 """
 
 import time

@@ -3,7 +3,7 @@
 # carried in per transfer, at most 10 minutes per command, /tmp kept between commands while the machine
 # stays up). On a GPU workstation with rvt2 installed, run `python -m benchmarks.experiment` directly.
 #
-# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (26 MiB each) + site.sha256
+# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (24 MiB each) + site.sha256
 # Offline host, one command per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders);
 # K=scripts/offline-gpu-host, E=experiments/rvt2_25demos.toml:
 #   bash $K/gpu_onebox.sh stash                         # keep the carried parts in /tmp/w
