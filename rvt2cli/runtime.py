@@ -231,6 +231,24 @@ def map_over_files(function, paths, *args, workers: int = 1):
         yield from pool.map(function, paths, *(itertools.repeat(a) for a in args))
 
 
+def torch_device(name: str):
+    """The torch device `--device NAME` asks for ("auto": CUDA where torch sees a GPU, else the CPU), refused in one
+    line where it names CUDA on a machine without one (instead of a traceback from a worker much later)."""
+    import torch
+
+    from rvt2cli.errors import UserError
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"--device {name}: not a torch device; give cpu, cuda or cuda:N") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {name}: no CUDA GPU is available here (torch {torch.__version__}); use --device cpu")
+    return device
+
+
 _worker_index: int | None = None  # this process's place in its pool (0, 1, ...); None outside a pool
 
 

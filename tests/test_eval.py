@@ -46,6 +46,25 @@ def test_eval_refuses_missing_and_foreign_checkpoints(tmp_path, cli):
     assert_one_line_error(cli("eval", "--checkpoint", tmp_path / "foreign"), "foreign", "not an rvt2 checkpoint")
 
 
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="needs a machine without a GPU")
+def test_cuda_without_gpu_is_refused_before_any_simulator_starts(tiny_checkpoint, tmp_path, cli):
+    r = cli("eval", "--checkpoint", tiny_checkpoint, "--episodes", "1", "--device", "cuda", "--out", tmp_path / "e")
+    assert_one_line_error(r, "--device cuda", "no CUDA GPU", "--device cpu")
+    assert not (tmp_path / "e").exists()
+
+
+def test_a_report_of_no_finished_episode_is_written_without_a_chart(tmp_path):
+    """Simulators that die before any episode ends still leave a report (of nothing) behind the one-line error."""
+    from rvt2cli.eval.report import build_report, write_report
+
+    meta = {"checkpoint": "c", "seed": 10000, "episodes_per_task": 1, "keyframe_budget": 25, "max_replans": 0,
+            "instruction": None, "paraphrases": False, "first_phrasing": False, "variations": None, "step_budget_scale": 1.0,
+            "insertion_search": False, "search_grids": {}, "untrained_tasks": [], "shared_policy": False, "seconds": 0.0}
+    write_report(build_report([], meta), tmp_path)
+    assert json.loads((tmp_path / "eval.json").read_text())["episodes"] == []
+    assert (tmp_path / "eval.md").exists() and not (tmp_path / "eval.png").exists()
+
+
 def test_oracle_report_carries_pose_errors_at_rest(tmp_path):
     """One oracle episode of insert_peg: every keyframe's error at rest is in eval.json and eval.md."""
     result = evaluate(EvalOptions(checkpoint=None, oracle=True, tasks=("insert_peg",), episodes=1, out=str(tmp_path)))

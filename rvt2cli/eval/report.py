@@ -290,6 +290,8 @@ def bar_chart(report: dict, path: Path) -> None:
 
     tasks = list(report["tasks"])
     sources = [s for s in SOURCES if any(s in r for r in report["tasks"].values())]
+    if not sources:  # no episode finished (e.g. the simulators died at once): nothing to draw
+        return
     fig, ax = plt.subplots(figsize=(max(4, 1.2 * len(tasks) + 1), 3.5))
     width = 0.8 / len(sources)
     for i, s in enumerate(sources):

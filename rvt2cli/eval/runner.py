@@ -24,7 +24,7 @@ from rvt2cli.eval.report import build_report, episode_record, write_report
 from rvt2cli.eval.rollout import Outcome, run_episode
 from rvt2cli.eval.search import InsertionSearch
 from rvt2cli.record.robot_visuals import DESCRIPTION as ROBOT_VISUALS
-from rvt2cli.runtime import use_vulkan_driver, worker_pool
+from rvt2cli.runtime import torch_device, use_vulkan_driver, worker_pool
 from rvt2cli.tasks import episode_variation, get_task
 
 
@@ -189,6 +189,8 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     if opts.policy_url and (opts.device != "cpu" or opts.stage2_min_points is not None):
         raise UserError("--device and --stage2-min-points set up a checkpoint loaded here; a served policy (--policy-url) "
                         "runs as `rvt2 serve` was started")
+    if opts.checkpoint:
+        torch_device(opts.device)  # refused here, in one line, rather than in every worker
     checkpoint_tasks, checkpoint_path, replayed = [], None, None
     if opts.replay:
         from rvt2cli.eval.journal import read_journal

@@ -29,6 +29,7 @@ from rvt2_client.wire import HEALTH_PATH, PROTOCOL, WireError, pack, unpack
 from rvt2cli import __version__
 from rvt2cli.deploy import KeyframePolicy, PolicyInput
 from rvt2cli.errors import UserError
+from rvt2cli.runtime import torch_device
 from rvt2cli.serve.batching import Batcher, at_fixed_size
 from rvt2cli.serve.options import ServeOptions, is_loopback
 from rvt2cli.serve.requests import MAX_INSTRUCTION_CHARS, predict_inputs
@@ -271,11 +272,7 @@ def open_server(checkpoint: str, device: str = "cpu", options: ServeOptions = Se
     if not is_loopback(options.host) and options.token is None:
         raise UserError(f"serving on {options.host} (off this machine's loopback) needs --token-file: a shared secret "
                         "every request must carry")
-    if device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise UserError(f"--device {device}: no CUDA GPU here; serve with --device cpu")
+    if torch_device(device).type == "cuda":
         if (Path(checkpoint) / "manifest.json").is_file():
             raise UserError(f"{checkpoint}: an exported policy runs on the CPU (onnxruntime's CPU provider or TorchScript "
                             "on the CPU); serve the checkpoint it was exported from for --device cuda")

@@ -15,6 +15,7 @@ from rvt2cli.atomic import check_folder_can_be_made, ensure_folder
 from rvt2cli.errors import UserError
 from rvt2cli.model.config import ModelConfig
 from rvt2cli.model.policy import RVT2Policy
+from rvt2cli.runtime import torch_device
 from rvt2cli.train.batches import BatchStream, make_batch
 from rvt2cli.train.checkpoint import Checkpoint, load_weights
 from rvt2cli.train.data_sharing import load_data
@@ -24,14 +25,6 @@ from rvt2cli.train.run_folder import model_config, resolve_options
 from rvt2cli.train.step import TrainStep
 from rvt2cli.train.training_data import TrainingData
 from rvt2cli.train.training_state import TrainingState, init_distributed
-
-
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(f"--device {name}: no CUDA GPU is available here (torch {torch.__version__}); use --device cpu")
-    return torch.device(name)
 
 
 def count_flops(policy: RVT2Policy, packed, device) -> float | None:
@@ -86,7 +79,7 @@ def setup_training(opts: TrainOptions, say=print, ddp_graph_split: bool = False,
     `data`: the samples, already read (a benchmark trains on one read several times); None: read them."""
     rank, world = init_distributed()
     say = say if rank == 0 else (lambda *_: None)
-    device = pick_device(opts.device)
+    device = torch_device(opts.device)
     if world > 1 and device.type == "cuda":
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
         torch.cuda.set_device(device)

@@ -21,6 +21,7 @@
 # loopbench, memorybench, ddpbench, eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile,
 # evalprofile, capturetests, gputests.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
+# EXPERIMENT_FOLDER (the experiment's folder in $W instead of the file's name),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
@@ -172,14 +173,15 @@ PY
     python3 $KIT/gpu_checkpoint.py restore "$WEIGHTS" "$RUN_DIR"
     ;;
   experiment)  # experiment FILE PHASES: an experiment file's phases (comma-separated, or all) into $W/NAME
-    file=$1 phases=$2
+    file=$1 phases=$2   # EXPERIMENT_FOLDER: another folder name in $W than the file's (e.g. NAME_3500steps)
     shift 2
     t=$(clock)
+    folder=${EXPERIMENT_FOLDER:-$(basename "$file" .toml)}
     # shellcheck disable=SC2086  # EXPERIMENT_ARGS is a list of options
-    python3 -m benchmarks.experiment "$file" --run --phase "$phases" --out "$W/$(basename "$file" .toml)" \
+    python3 -m benchmarks.experiment "$file" --run --phase "$phases" --out "$W/$folder" \
       --rvt2 "python3 -m rvt2cli" --torchrun "python3 -m torch.distributed.run" --workers "$WORKERS" --gpus "$NPROC" \
-      --device "$DEVICE" ${EXPERIMENT_ARGS:-} 2>&1 | tee -a "$W/experiment_$(basename "$file" .toml).log"
-    phase "experiment_$(basename "$file" .toml)_$phases" $(( $(clock) - t ))
+      --device "$DEVICE" ${EXPERIMENT_ARGS:-} 2>&1 | tee -a "$W/experiment_$folder.log"
+    phase "experiment_${folder}_$phases" $(( $(clock) - t ))
     ;;
   oracle)  # the executor's ceiling on the evaluation seeds: the expert's keyframes, closed loop
     t=$(clock)
