@@ -9,7 +9,7 @@
 #   KIT=1 NPROC=4 WORKERS=60 bash scripts/offline-gpu-host/gpu_onebox.sh stash setup bg main \
 #     scripts/choose_then_report.sh experiments/rvt2_18_via.toml                             # the offline kit
 #
-# Settings (environment): VALIDATION (seeds, default 20000-20049), CURVE_STEPS (default 1500,3000,4500),
+# Settings (environment): VALIDATION (seeds, default 20000-20049), CURVE_STEPS (default 1500,3000,4500; none: no curve),
 # CURVE_EPISODES (per task at the earlier checkpoints, default 25), REPORT (the file's evaluations in the order
 # run, default "main paraphrases"), RENDERER (instead of the file's: demos and evaluations alike).
 # Options after the file go to every `python -m benchmarks.experiment` (workstation only; the kit takes NPROC
@@ -31,8 +31,9 @@ phase() {  # PHASES OPTIONS...: one `benchmarks.experiment` command
 }
 
 phase record,train "$@"
-phase eval --eval-seeds "${VALIDATION:-20000-20049}" --eval-steps "${CURVE_STEPS:-1500,3000,4500}" \
-  --curve-episodes "${CURVE_EPISODES:-25}" "$@"
+curve=(--eval-steps "${CURVE_STEPS:-1500,3000,4500}" --curve-episodes "${CURVE_EPISODES:-25}")
+if [ "${CURVE_STEPS:-}" = none ]; then curve=(); fi   # the last checkpoint alone (a machine short of time)
+phase eval --eval-seeds "${VALIDATION:-20000-20049}" "${curve[@]}" "$@"
 for evaluation in ${REPORT:-main paraphrases}; do
   phase eval --evaluations "$evaluation" "$@"
 done

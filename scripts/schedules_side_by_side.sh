@@ -10,7 +10,7 @@
 #   KIT=1 WORKERS=30 bash scripts/offline-gpu-host/gpu_onebox.sh stash setup bg main \
 #     scripts/schedules_side_by_side.sh experiments/rvt2_18_onegpu_via.toml 3500,4000           # the offline kit
 #
-# Folders: the recording in NAME/ (data/experiments/ on a workstation, the kit's /tmp/w), each schedule in
+# Folders: the recording in NAME/ (in ROOT, default data/experiments/, on a workstation; the kit's /tmp/w), each schedule in
 # NAME_STEPSsteps/ (its demos a link to NAME/demos), the reports in NAME_STEPSsteps/evals/seed0_from20000.
 # Settings (environment): VALIDATION (seeds, default 20000-20049), WORKERS (simulator processes in all, default
 # the cores less two), RENDERER (instead of the file's: demos and evaluations alike). Options after the steps go to
@@ -30,7 +30,7 @@ name=$(basename "$file" .toml)
 workers=${WORKERS:-$(( $(nproc) > 3 ? $(nproc) - 2 : 1 ))}
 renderer=${RENDERER:+--renderer $RENDERER}
 
-if [ -n "${KIT:-}" ]; then root=${W:-/tmp/w}; else root=data/experiments; fi
+if [ -n "${KIT:-}" ]; then root=${W:-/tmp/w}; else root=${ROOT:-data/experiments}; fi
 # the GPUs (as CUDA_VISIBLE_DEVICES names them); none: one slot, the schedules one after another
 if [ -n "${CUDA_VISIBLE_DEVICES:-}" ]; then IFS=, read -r -a gpus <<< "$CUDA_VISIBLE_DEVICES"
 elif command -v nvidia-smi > /dev/null && nvidia-smi -L > /dev/null 2>&1; then

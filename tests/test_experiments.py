@@ -373,3 +373,53 @@ def test_success_against_training_time_from_published_runs(tmp_path):
     assert minutes == sorted(minutes) and abs(minutes[-1] - json.loads(gzip.decompress((curve / "train/run.json.gz").read_bytes()))["seconds"] / 60) < 1e-9
     with pytest.raises(SystemExit, match="LABEL=DIR"):
         success_curve.main(["--model", str(two)])
+
+
+SCHEDULES = runner.EXPERIMENTS.parent / "scripts" / "schedules_side_by_side.sh"
+TINY_EXPERIMENT = """name = "tiny_schedules"
+summary = "two schedules of a tiny policy on one recording"
+tasks = ["push_cube"]
+[record]
+demos_per_task = 1
+[train]
+config = "small"
+steps = 2
+batch_size = 4
+[train.options]
+warmup = 1
+val-episodes = 0
+[eval]
+episodes_per_task = 1
+"""
+
+
+@pytest.mark.sim
+def test_schedules_side_by_side_record_once_and_train_and_evaluate_each_schedule(tmp_path):
+    """scripts/schedules_side_by_side.sh on a machine without a GPU: one recording, the schedules one after
+    another in folders of their own (their demos a link to it), each evaluated on the validation seeds."""
+    import subprocess
+
+    file = tmp_path / "tiny_schedules.toml"
+    file.write_text(TINY_EXPERIMENT)
+    env = {**__import__("os").environ, "ROOT": str(tmp_path / "x"), "WORKERS": "1", "VALIDATION": "20000-20000",
+           "CUDA_VISIBLE_DEVICES": "", "PYTHON": sys.executable}
+    r = subprocess.run(["bash", str(SCHEDULES), str(file), "1,2", "--device", "cpu", "--rvt2", f"{sys.executable} -m rvt2cli"],
+                       env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    recording = tmp_path / "x" / "tiny_schedules"
+    assert len(list((recording / "demos").glob("*.mcap"))) == 1
+    for steps in (1, 2):
+        folder = tmp_path / "x" / f"tiny_schedules_{steps}steps"
+        assert (folder / "demos").resolve() == (recording / "demos").resolve()
+        assert json.loads((folder / "runs" / "seed0" / "run.json").read_text())["steps"] == steps
+        report = json.loads((folder / "evals" / "seed0_from20000" / "eval.json").read_text())
+        assert [(e["task"], e["seed"]) for e in report["episodes"]] == [("push_cube", 20000)]
+
+
+@pytest.mark.parametrize("args, message", [(["nope.toml", "1,2"], "no such experiment file"),
+                                           (["experiments/rvt2_18_onegpu_via.toml", "3500,x"], "give numbers of steps")])
+def test_schedules_side_by_side_refuses_bad_input_in_one_line(args, message):
+    import subprocess
+
+    r = subprocess.run(["bash", str(SCHEDULES), *args], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
