@@ -17,11 +17,13 @@
 # every `python -m benchmarks.experiment` (workstation only). The choice among the schedules is made on these
 # seeds; the reported seeds wait for it.
 set -euo pipefail
-cd "$(dirname "$0")/.."
 usage="usage: $0 EXPERIMENT_FILE STEPS,STEPS,... (e.g. experiments/rvt2_18_onegpu_via.toml 3500,4000)"
 file=${1:?$usage}
 schedules=${2:?$usage}
 [ -f "$file" ] || { echo "$file: no such experiment file; $usage" >&2; exit 2; }
+file=$(realpath "$file")   # named from here, read from the repository root
+if [ -n "${ROOT:-}" ]; then ROOT=$(realpath -m "$ROOT"); fi
+cd "$(dirname "$0")/.."
 [[ $schedules =~ ^[0-9]+(,[0-9]+)*$ ]] || { echo "steps '$schedules': give numbers of steps, comma-separated; $usage" >&2; exit 2; }
 shift 2
 extra=("$@")   # options for every `benchmarks.experiment` command (a workstation; e.g. --device cpu)
