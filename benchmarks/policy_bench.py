@@ -66,11 +66,11 @@ def median_time_ms(fn, device, repeats: int, warmup: int = 3) -> float:
 
 
 def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: int, compile: bool = False,
-                     eight_bit: bool = True, profile: str | None = None) -> dict:
+                     eight_bit: bool = True, profile: str | None = None, compile_mode: str | None = None) -> dict:
     """The training step `rvt2 train` runs (rvt2cli.train.step.TrainStep), on one synthetic batch."""
     policy = RVT2Policy(cfg, render_backend="warp").to(device)
     if compile:
-        policy.compile_network()
+        policy.compile_network(compile_mode)
     optimizer, name = make_optimizer(policy.parameters(), 3e-4, 1e-4, device, eight_bit)
     schedule = warmup_cosine(optimizer, 10, 10_000)
     data = synthetic_train_batch(cfg, batch, points, device)
@@ -89,7 +89,7 @@ def train_throughput(cfg, device, batch: int, points: int, steps: int, warmup: i
         step()
     seconds = (timer(device) - start) / steps
     result = {"config": cfg.name, "batch": batch, "points": points, "optimizer": name, "bf16": amp, "compiled": compile,
-              "step_ms": 1000 * seconds, "samples_per_s": batch / seconds,
+              "compile_mode": compile_mode or "default", "step_ms": 1000 * seconds, "samples_per_s": batch / seconds,
               "params_m": sum(p.numel() for p in policy.parameters()) / 1e6}
     if device.type == "cuda":
         result["peak_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
@@ -167,6 +167,9 @@ def main() -> None:
     parser.add_argument("--skip-train", action="store_true")
     parser.add_argument("--skip-inference", action="store_true")
     parser.add_argument("--compile", action="store_true", help="torch.compile the network (training and inference)")
+    parser.add_argument("--compile-mode", choices=("reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"),
+                        help="with --compile, the training step's torch.compile mode (default: torch's default); "
+                             "reduce-overhead replays each compiled part as a CUDA graph")
     parser.add_argument("--profile", help="also profile the training step and write the kernel table here")
     parser.add_argument("--json")
     parser.add_argument("--quick", action="store_true", help="small config, tiny sizes: checks that it runs")
@@ -181,7 +184,8 @@ def main() -> None:
         cfg = get_config(name)
         results["flops"][name] = forward_flops(cfg, device, points)
         for batch in [] if args.skip_train else batches:
-            results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3, compile=args.compile, profile=args.profile))
+            results["train"].append(train_throughput(cfg, device, batch, points, steps, warmup=3, compile=args.compile, profile=args.profile,
+                                                    compile_mode=args.compile_mode))
             print(json.dumps(results["train"][-1]), flush=True)
         if not args.skip_inference:
             results["inference"].append(inference_latency(cfg, device, points, repeats, compile=args.compile))

@@ -136,9 +136,10 @@ class RVT2Policy(nn.Module):
 
     forward = forward_train  # what DistributedDataParallel calls
 
-    def compile_network(self) -> None:
+    def compile_network(self, mode: str | None = None) -> None:
         """torch.compile the transformer stages and the action head in place (the renderer stays
-        eager: warp kernels are opaque to the compiler). Weights and their names are unchanged.
+        eager: warp kernels are opaque to the compiler). Weights and their names are unchanged. `mode`:
+        torch.compile's (None: its default; e.g. "reduce-overhead", CUDA graphs of each compiled part).
 
         The graphs are specialised to the shapes of their first call (a training batch never changes
         size). Calls at other sizes (validation) and calls under a torch dispatch mode (the FLOP counter)
@@ -147,8 +148,8 @@ class RVT2Policy(nn.Module):
         `rvt2 train --compile` trained eagerly: 512 samples/s at batch 192 on an H200, against 723 for
         the compiled step, benchmarks/loop_bench.py)."""
         for stage in self.stages:
-            stage.compile(dynamic=False)
-        self.action.compile(dynamic=False)
+            stage.compile(dynamic=False, mode=mode)
+        self.action.compile(dynamic=False, mode=mode)
 
     @staticmethod
     def eager():

@@ -21,7 +21,7 @@
 # loopbench, memorybench, ddpbench, eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile,
 # evalprofile, capturetests, gputests.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
-# EXPERIMENT_FOLDER (the experiment's folder in $W instead of the file's name),
+# EXPERIMENT_FOLDER (the experiment's folder in $W instead of the file's name), BENCH_ARGS (more options of `bench`),
 # NPROC (GPUs to train on), WORKERS (simulator processes), DEVICE, RUN_DIR (the run weights and restore use),
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
@@ -134,8 +134,9 @@ PY
     ;;
   bench)  # the training step rvt2 train runs, at the paper's batch and the one we train with
     t=$(clock)
+    # shellcheck disable=SC2086  # BENCH_ARGS is a list of options (e.g. "--compile-mode reduce-overhead")
     python3 -m benchmarks.policy_bench --configs rvt2 --batch "24,$BATCH" --compile --skip-inference --steps 15 \
-      --json "$OUT/policy_bench.json" 2>&1 | tail -6
+      --json "$OUT/policy_bench.json" ${BENCH_ARGS:-} 2>&1 | tail -6
     phase bench $(( $(clock) - t ))
     ;;
   servebench)  # rvt2 serve under 1, 4 and 16 client processes, with and without batching (benchmarks/serve_bench.py)
