@@ -33,11 +33,11 @@ workers=${WORKERS:-$(( $(nproc) > 3 ? $(nproc) - 2 : 1 ))}
 renderer=${RENDERER:+--renderer $RENDERER}
 
 if [ -n "${KIT:-}" ]; then root=${W:-/tmp/w}; else root=${ROOT:-data/experiments}; fi
-# the GPUs (as CUDA_VISIBLE_DEVICES names them); none: one slot, the schedules one after another
-if [ -n "${CUDA_VISIBLE_DEVICES:-}" ]; then IFS=, read -r -a gpus <<< "$CUDA_VISIBLE_DEVICES"
-elif command -v nvidia-smi > /dev/null && nvidia-smi -L > /dev/null 2>&1; then
-  mapfile -t gpus < <(seq 0 $(( $(nvidia-smi -L | wc -l) - 1 )))
-else gpus=(""); fi
+# the GPUs this process may use, as CUDA_VISIBLE_DEVICES names them (rvt2cli.runtime.visible_gpus, as rvt2's workers
+# see them); none: one slot, "", the schedules one after another
+if [ -n "${KIT:-}" ]; then python=python3; else python=${PYTHON:-$(command -v python || echo .venv/bin/python)}; fi
+listed=$("$python" -c 'from rvt2cli.runtime import visible_gpus; print("\n".join(visible_gpus()))')
+mapfile -t gpus <<< "$listed"
 slots=$(( ${#steps[@]} < ${#gpus[@]} ? ${#steps[@]} : ${#gpus[@]} ))
 share=$(( workers / slots > 0 ? workers / slots : 1 ))
 
@@ -62,7 +62,7 @@ slot() {  # INDEX: the schedules this GPU slot trains and evaluates, one after a
     local folder="${name}_${steps[s]}steps"
     mkdir -p "$root/$folder"
     ln -sfn "$(cd "$root/$name" && pwd)/demos" "$root/$folder/demos"
-    CUDA_VISIBLE_DEVICES=${gpus[index]:-${CUDA_VISIBLE_DEVICES:-}} experiment "$folder" train,eval "$share" \
+    CUDA_VISIBLE_DEVICES=${gpus[index]} experiment "$folder" train,eval "$share" \
       --steps "${steps[s]}" --eval-seeds "${VALIDATION:-20000-20049}" > "$root/$folder.log" 2>&1 \
       || { echo "$folder failed: $root/$folder.log" >&2; return 1; }
     echo "$folder done: $root/$folder/evals"
