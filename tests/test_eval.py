@@ -56,11 +56,9 @@ def test_cuda_without_gpu_is_refused_before_any_simulator_starts(tiny_checkpoint
 def test_a_report_of_no_finished_episode_is_written_without_a_chart(tmp_path):
     """Simulators that die before any episode ends still leave a report (of nothing) behind the one-line error."""
     from rvt2cli.eval.report import build_report, write_report
+    from rvt2cli.eval.runner import report_meta
 
-    meta = {"checkpoint": "c", "seed": 10000, "episodes_per_task": 1, "keyframe_budget": 25, "max_replans": 0,
-            "instruction": None, "paraphrases": False, "first_phrasing": False, "variations": None, "step_budget_scale": 1.0,
-            "insertion_search": False, "search_grids": {}, "untrained_tasks": [], "shared_policy": False, "seconds": 0.0}
-    write_report(build_report([], meta), tmp_path)
+    write_report(build_report([], report_meta(EvalOptions(checkpoint="c", episodes=1), "c", ["insert_peg"], [], 0.0)), tmp_path)
     assert json.loads((tmp_path / "eval.json").read_text())["episodes"] == []
     assert (tmp_path / "eval.md").exists() and not (tmp_path / "eval.png").exists()
 

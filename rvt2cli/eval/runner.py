@@ -174,6 +174,16 @@ def search_grids(task_names) -> dict:
             for name in task_names if InsertionSearch.for_task(task := get_task(name))}
 
 
+def report_meta(opts: EvalOptions, checkpoint_path: str | None, tasks: list[str], untrained: list[str], seconds: float) -> dict:
+    """What an evaluation's report says of how it ran, beside its episodes (`build_report`'s `meta`)."""
+    return {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
+            "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
+            "paraphrases": opts.paraphrases, "first_phrasing": opts.first_phrasing, "variations": opts.variations,
+            "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
+            "search_grids": search_grids(tasks) if opts.insertion_search else {},
+            "untrained_tasks": untrained, "shared_policy": opts.shared_policy, "seconds": seconds}
+
+
 def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     """Run every job not yet in the journal; `on_start(number_of_episodes)` once the inputs are checked,
     `on_outcome(job, outcome, finished)` after each episode (the CLI's progress bar)."""
@@ -245,12 +255,7 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
             on_outcome(job, outcome, finished)
 
     def report() -> dict:
-        meta = {"checkpoint": checkpoint_path, "seed": opts.seed, "episodes_per_task": opts.episodes,
-                "keyframe_budget": opts.keyframe_budget, "max_replans": opts.max_replans, "instruction": opts.instruction,
-                "paraphrases": opts.paraphrases, "first_phrasing": opts.first_phrasing, "variations": opts.variations,
-                "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
-                "search_grids": search_grids(sorted({job.task for job in jobs})) if opts.insertion_search else {},
-                "untrained_tasks": untrained, "shared_policy": opts.shared_policy, "seconds": time.perf_counter() - start}
+        meta = report_meta(opts, checkpoint_path, sorted({job.task for job in jobs}), untrained, time.perf_counter() - start)
         result = build_report(journal.records, meta)
         write_report(result, out_dir)
         return result
