@@ -24,7 +24,7 @@ import json
 import tomllib
 from pathlib import Path
 
-from rvt2cli.eval.journal import NAME as JOURNAL, copy_in, read_journal
+from rvt2cli.eval.journal import NAME as JOURNAL, copy_in, read_journal, read_text
 from rvt2cli.eval.report import build_report, wilson_interval
 
 
@@ -165,10 +165,11 @@ def from_eval_and_record(oracle_dir: str, expert_path: str) -> tuple[dict, dict]
 
 
 def load_previous(arg: str) -> tuple[str, dict]:
-    """LABEL=RESULTS_JSON[#COLUMN]: a policy column of an earlier results.json (default: its first)."""
+    """LABEL=RESULTS_JSON[#COLUMN]: a policy column of an earlier results.json, or its compressed copy (default: its
+    first)."""
     label, path = arg.split("=", 1)
     path, _, column = path.partition("#")
-    results = json.loads(Path(path).read_text())
+    results = json.loads(read_text(Path(path)))
     column = column or results["labels"][0]
     return label, {r["task"]: r["policies"][column] for r in results["rows"]}
 
