@@ -16,7 +16,8 @@ over all of them) and the spread between the models' rates beside it. oracle.jso
 --previous adds a policy column of an earlier results.json (its first, or the one named after #) for comparison. --paper
 FILE#MODEL adds a published column (`benchmarks/paper_rlbench18.toml#rvt2`: the RVT-2 paper's mean and standard deviation
 over its four evaluations) and, for the first --paper, the first policy's difference from it in points. The last column
-compares the first --policy with the oracle.
+compares the first --policy with the oracle. --paired adds, for each other --policy, the episodes (task and seed)
+that succeed in the first only and in it only, with the exact McNemar test of them.
 """
 
 import argparse
@@ -28,8 +29,8 @@ from rvt2cli.eval.journal import NAME as JOURNAL, copy_in, read_journal, read_te
 from rvt2cli.eval.report import build_report, wilson_interval
 
 
-def load_policy(dirs: str) -> dict:
-    """One report from one or more eval folders (their episodes merged)."""
+def load_records(dirs: str) -> tuple[list[dict], int]:
+    """The policy's episode records of one or more eval folders (merged), and the first seed they cover."""
     records, seeds = [], []
     for item in dirs.split("+"):
         item, phrasing = phrasing_filter(item)
@@ -37,8 +38,42 @@ def load_policy(dirs: str) -> dict:
         plan, episodes = read_journal(journal_of(Path(folder)))
         records += [e for e in episodes if e["source"] == "policy" and first <= e["seed"] <= last and phrasing(e)]
         seeds.append(max(plan["seed"], first))
+    return records, min(seeds)
+
+
+def load_policy(dirs: str) -> dict:
+    """One report from one or more eval folders (their episodes merged)."""
+    records, seed = load_records(dirs)
     per_task = len({r["seed"] for r in records if r["task"] == records[0]["task"]})
-    return build_report(records, {"seed": min(seeds), "episodes_per_task": per_task})
+    return build_report(records, {"seed": seed, "episodes_per_task": per_task})
+
+
+def paired(first: list[dict], other: list[dict]) -> dict:
+    """Two models on the same episodes (task and seed): how many succeed in one only, and the exact McNemar test
+    of those discordant episodes (two-sided binomial, half and half under no difference)."""
+    from scipy.stats import binomtest
+
+    def by_episode(records):
+        return {(r["task"], r["seed"]): bool(r["success"]) for r in records}
+
+    a, b = by_episode(first), by_episode(other)
+    both = sorted(a.keys() & b.keys())
+    if not both:
+        raise SystemExit("results_table: error: --paired: the two evaluations share no episode (task and seed); "
+                         "give evaluations of the same seeds")
+    only_first = sum(a[k] and not b[k] for k in both)
+    only_other = sum(b[k] and not a[k] for k in both)
+    discordant = only_first + only_other
+    return {"episodes": len(both), "only_first": only_first, "only_other": only_other,
+            "p": binomtest(only_first, discordant).pvalue if discordant else 1.0}
+
+
+def paired_markdown(first_label: str, comparisons: dict[str, dict]) -> str:
+    lines = [f"| against {first_label} | episodes paired | succeed only in {first_label} | only in this | exact McNemar p |",
+             "|---|---|---|---|---|"]
+    for label, c in comparisons.items():
+        lines.append(f"| {label} | {c['episodes']} | {c['only_first']} | {c['only_other']} | {c['p']:.2g} |")
+    return "\n".join(lines)
 
 
 def seed_range(item: str) -> tuple[str, float, float]:
@@ -238,6 +273,8 @@ def main() -> None:
     parser.add_argument("--previous", action="append", default=[], metavar="LABEL=RESULTS_JSON[#COLUMN]")
     parser.add_argument("--paper", action="append", default=[], metavar="FILE#MODEL",
                         help="a published column, e.g. benchmarks/paper_rlbench18.toml#rvt2 (repeatable)")
+    parser.add_argument("--paired", action="store_true",
+                        help="below the table, each other --policy against the first, episode by episode")
     parser.add_argument("--chart")
     parser.add_argument("--json")
     args = parser.parse_args()
@@ -251,6 +288,15 @@ def main() -> None:
     results = collect(policies, oracle, expert, dict(load_previous(p) for p in args.previous),
                       dict(load_paper(p) for p in args.paper))
     print(markdown(results))
+    if args.paired:
+        (first_label, first_models), *others = [p.split("=", 1) for p in args.policy]
+        if any("," in models for _, models in [(first_label, first_models), *others]):
+            parser.error("--paired compares single models: give each --policy without commas")
+        first = load_records(first_models)[0]
+        comparisons = {label: paired(first, load_records(models)[0]) for label, models in others}
+        results["paired"] = {"against": first_label, **comparisons}
+        print()
+        print(paired_markdown(first_label, comparisons))
     if args.chart:
         chart(results, Path(args.chart))
     if args.json:

@@ -3,6 +3,7 @@
 evaluation journal (the rvt2-18 oracle's 900 episodes, published in benchmarks/results/)."""
 
 import gzip
+import lzma
 import json
 import tomllib
 
@@ -116,3 +117,35 @@ def test_the_first_phrasing_and_the_others_split_an_evaluation():
             **get_task(task).variation_values(r["variation"])) for r in records)
     with pytest.raises(SystemExit, match="first or others"):
         results_table.load_models(f"{folder}#second")
+
+
+def test_two_evaluations_are_compared_episode_by_episode(tmp_path):
+    """--paired: a published journal against itself (no discordant episode), against a copy with some outcomes
+    turned over (exactly those counted, and the exact McNemar p of them), and against seeds it does not share."""
+    from scipy.stats import binomtest
+
+    folder = REPOSITORY / "benchmarks" / "results" / "rvt2_18_onegpu_3500_h200x2" / "evals" / "seed0_from10000"
+    records, seed = results_table.load_records(str(folder))
+    assert seed == 10000 and len(records) == 900
+    same = results_table.paired(records, records)
+    assert (same["episodes"], same["only_first"], same["only_other"], same["p"]) == (900, 0, 0, 1.0)
+
+    header, *lines = lzma.open(folder / "episodes.jsonl.xz", "rt").read().splitlines()
+    turned = {"lost": 0, "won": 0}
+    copy = []
+    for i, line in enumerate(lines):
+        record = json.loads(line)
+        if record.get("source") == "policy" and i % 7 == 0:  # every seventh episode's outcome turned over
+            turned["lost" if record["success"] else "won"] += 1
+            record["success"] = not record["success"]
+        copy.append(json.dumps(record))
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "episodes.jsonl").write_text("\n".join([header, *copy]) + "\n")
+    against = results_table.paired(records, results_table.load_records(str(other))[0])
+    assert against["only_first"] == turned["lost"] > 0 and against["only_other"] == turned["won"] > 0
+    assert against["p"] == pytest.approx(binomtest(turned["lost"], turned["lost"] + turned["won"]).pvalue)
+
+    second = folder.parent / "seed0_from10050"
+    with pytest.raises(SystemExit, match="share no episode"):
+        results_table.paired(records, results_table.load_records(str(second))[0])
