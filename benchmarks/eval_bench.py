@@ -2,7 +2,7 @@
 
     python -m benchmarks.eval_bench JOURNAL... [--tasks a,b] [--episodes 2] [--seed 10000] [--json out.json]
 
-JOURNALs are `episodes.jsonl` files (plain or .gz) of policy evaluations. Their predicted keyframes run
+JOURNALs are `episodes.jsonl` files (plain, .gz or .xz) of policy evaluations. Their predicted keyframes run
 again through `evaluate` (what `rvt2 eval` runs: the scene, the cameras, the cloud, the executor and
 its planner), in one process, for the first --episodes seeds from --seed of each task they hold. A
 policy on a GPU adds its prediction to each keyframe; on a GPU machine the rest is what the CPU cores
@@ -11,7 +11,6 @@ per keyframe, by task, and the share of the time in each part of an episode (`be
 """
 
 import argparse
-import gzip
 import json
 import tempfile
 import time
@@ -36,13 +35,9 @@ PARTS = {
 
 
 def merged_journal(paths: list[Path], folder: Path) -> Path:
-    """One journal in `folder` of every policy episode of `paths` (.gz ones decompressed), with the first one's plan."""
+    """One journal in `folder` of every policy episode of `paths` (plain, .gz or .xz), with the first one's plan."""
     journal = None
-    for index, path in enumerate(paths):
-        if path.suffix == ".gz":
-            plain = folder / f"{index}.jsonl"
-            plain.write_bytes(gzip.decompress(path.read_bytes()))
-            path = plain
+    for path in paths:
         plan, records = read_journal(path)
         journal = journal or Journal(folder, plan, resume=False)
         for record in records:

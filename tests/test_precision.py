@@ -215,14 +215,14 @@ def test_replay_runs_a_recorded_policys_keyframes_through_the_executor(tmp_path)
 
 @pytest.mark.sim
 def test_eval_bench_times_the_replayed_episode_and_its_parts(tmp_path):
-    """benchmarks/eval_bench.py (docs/BENCHMARKS.md, "Evaluation"): the same replay, from a compressed
-    journal, timed in one process, its time split into the parts of an episode."""
-    import gzip
+    """benchmarks/eval_bench.py (docs/BENCHMARKS.md, "Evaluation"): the same replay, from a journal compressed
+    as published ones are (xz), timed in one process, its time split into the parts of an episode."""
+    import lzma
     import subprocess
     import sys
 
-    journal = tmp_path / "episodes.jsonl.gz"
-    journal.write_bytes(gzip.compress(V2_JOURNAL.read_bytes()))
+    journal = tmp_path / "episodes.jsonl.xz"
+    journal.write_bytes(lzma.compress(V2_JOURNAL.read_bytes()))
     out = tmp_path / "bench.json"
     run = subprocess.run([sys.executable, "-m", "benchmarks.eval_bench", str(journal), "--tasks", "pick_cube", "--episodes", "1",
                           "--json", str(out)], capture_output=True, text=True, cwd=Path(__file__).resolve().parent.parent)
