@@ -135,9 +135,12 @@ PY
   bench)  # the training step rvt2 train runs, at the paper's batch and the one we train with
     t=$(clock)
     # shellcheck disable=SC2086  # BENCH_ARGS is a list of options (e.g. "--compile-mode reduce-overhead")
+    # in $W (which `bg` keeps), named by the compile mode in BENCH_ARGS: several modes, one after another
+    mode=$(echo "${BENCH_ARGS:-}" | sed -n 's/.*--compile-mode \([a-z-]*\).*/_\1/p')
     python3 -m benchmarks.policy_bench --configs rvt2 --batch "24,$BATCH" --compile --skip-inference --steps 15 \
-      --json "$OUT/policy_bench.json" ${BENCH_ARGS:-} 2>&1 | tail -6
-    phase bench $(( $(clock) - t ))
+      --json "$W/policy_bench$mode.json" ${BENCH_ARGS:-} 2>&1 | tail -6
+    cp "$W/policy_bench$mode.json" "$OUT/" 2>/dev/null || true
+    phase "bench$mode" $(( $(clock) - t ))
     ;;
   servebench)  # rvt2 serve under 1, 4 and 16 client processes, with and without batching (benchmarks/serve_bench.py)
     t=$(clock)
@@ -332,7 +335,7 @@ PY
   results)  # every small result in one file (the host returns at most 8 files per transfer)
     cp "$W/phases.tsv" "$OUT/" 2>/dev/null || true
     # the patterns are matched in $W below, not here
-    files=(phases.tsv "record_bench_*.json" capture_bench.json "record_profile_*.json" eval_profile.json capture_tests.txt gpu_tests.txt memory_bench.json memory_bench.log serve_bench.json eval_share_bench.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
+    files=(phases.tsv "policy_bench*.json" "record_bench_*.json" capture_bench.json "record_profile_*.json" eval_profile.json capture_tests.txt gpu_tests.txt memory_bench.json memory_bench.log serve_bench.json eval_share_bench.json ddp_bench.json loop_bench.json loop_bench.log profile/profile_real.txt profile/profile_loop.txt gpu.txt
            eval_oracle/eval.json eval_oracle/eval.md eval_oracle/episodes.jsonl eval_replay/eval.md eval_replay/episodes.jsonl)
     if [ -n "${EXPERIMENT:-}" ]; then  # an experiment's logs and reports (benchmarks/experiment.py's layout)
       e=$(basename "$EXPERIMENT" .toml)
