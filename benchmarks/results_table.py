@@ -41,11 +41,15 @@ def load_records(dirs: str) -> tuple[list[dict], int]:
     return records, min(seeds)
 
 
-def load_policy(dirs: str) -> dict:
-    """One report from one or more eval folders (their episodes merged)."""
-    records, seed = load_records(dirs)
+def report_of(records: list[dict], seed: int) -> dict:
+    """One report of a policy's episode records (`load_records`)."""
     per_task = len({r["seed"] for r in records if r["task"] == records[0]["task"]})
     return build_report(records, {"seed": seed, "episodes_per_task": per_task})
+
+
+def load_policy(dirs: str) -> dict:
+    """One report from one or more eval folders (their episodes merged)."""
+    return report_of(*load_records(dirs))
 
 
 def paired(first: list[dict], other: list[dict]) -> dict:
@@ -280,7 +284,12 @@ def main() -> None:
     args = parser.parse_args()
     if not args.oracle_bench and not (args.oracle and args.expert):
         parser.error("give the oracle and expert columns: --oracle-bench ORACLE_JSON, or --oracle EVAL_DIR with --expert RECORD_JSON")
-    policies = {label: load_models(models) for label, models in (p.split("=", 1) for p in args.policy)}
+    specs = [p.split("=", 1) for p in args.policy]
+    if args.paired and any("," in models for _, models in specs):
+        parser.error("--paired compares single models: give each --policy without commas")
+    # each model's episodes, read once: its report, and the episode-by-episode comparison (--paired)
+    read = {label: [load_records(dirs) for dirs in models.split(",")] for label, models in specs}
+    policies = {label: [report_of(*model) for model in models] for label, models in read.items()}
     if args.oracle_bench:
         oracle, expert = from_oracle_bench(args.oracle_bench)
     else:
@@ -289,11 +298,8 @@ def main() -> None:
                       dict(load_paper(p) for p in args.paper))
     print(markdown(results))
     if args.paired:
-        (first_label, first_models), *others = [p.split("=", 1) for p in args.policy]
-        if any("," in models for _, models in [(first_label, first_models), *others]):
-            parser.error("--paired compares single models: give each --policy without commas")
-        first = load_records(first_models)[0]
-        comparisons = {label: paired(first, load_records(models)[0]) for label, models in others}
+        (first_label, [(first, _)]), *others = read.items()
+        comparisons = {label: paired(first, records) for label, [(records, _)] in others}
         results["paired"] = {"against": first_label, **comparisons}
         print()
         print(paired_markdown(first_label, comparisons))

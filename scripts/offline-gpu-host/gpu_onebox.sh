@@ -134,9 +134,9 @@ PY
     ;;
   bench)  # the training step rvt2 train runs, at the paper's batch and the one we train with
     t=$(clock)
-    # shellcheck disable=SC2086  # BENCH_ARGS is a list of options (e.g. "--compile-mode reduce-overhead")
     # in $W (which `bg` keeps), named by the compile mode in BENCH_ARGS: several modes, one after another
     mode=$(echo "${BENCH_ARGS:-}" | sed -n 's/.*--compile-mode \([a-z-]*\).*/_\1/p')
+    # shellcheck disable=SC2086  # BENCH_ARGS is a list of options (e.g. "--compile-mode reduce-overhead")
     python3 -m benchmarks.policy_bench --configs rvt2 --batch "24,$BATCH" --compile --skip-inference --steps 15 \
       --json "$W/policy_bench$mode.json" ${BENCH_ARGS:-} 2>&1 | tail -6
     cp "$W/policy_bench$mode.json" "$OUT/" 2>/dev/null || true
