@@ -76,8 +76,13 @@ def paired_markdown(first_label: str, comparisons: dict[str, dict]) -> str:
     lines = [f"| against {first_label} | episodes paired | succeed only in {first_label} | only in this | exact McNemar p |",
              "|---|---|---|---|---|"]
     for label, c in comparisons.items():
-        lines.append(f"| {label} | {c['episodes']} | {c['only_first']} | {c['only_other']} | {c['p']:.2g} |")
+        lines.append(f"| {label} | {c['episodes']} | {c['only_first']} | {c['only_other']} | {p_value(c['p'])} |")
     return "\n".join(lines)
+
+
+def p_value(p: float) -> str:
+    """Two significant digits; a p too small for a double (it underflows to 0) as a bound, never as 0."""
+    return f"{p:.2g}" if p > 0 else "< 1e-300"
 
 
 def seed_range(item: str) -> tuple[str, float, float]:

@@ -1,6 +1,6 @@
 """Closed-loop success against training time (the paper's "training time vs success" figure), from experiment folders.
 
-    python -m benchmarks.success_curve --model "LABEL=DIR[+DIR...]" [--model ...] [--seeds FIRST] \
+    python -m benchmarks.success_curve --model "LABEL=DIR[+DIR...]" [--model ...] [--seeds FIRST[,FIRST...]] \
         [--x minutes|steps] [--chart docs/img/success_curve.png] [--json curve.json]
 
 DIR is an experiment's folder (`python -m benchmarks.experiment --out`, or its copy under benchmarks/results/):
@@ -11,7 +11,8 @@ step, the training's wall time up to it (run.json's seconds, shared out over the
 rates, so validation and checkpoint pauses land where they happened) and its success over the evaluation's
 episodes with a Wilson interval. Runs on different machines compare by steps (`--x steps`), not by minutes.
 Only evaluations on seeds from FIRST count (default: the one first seed all
-of a model's folders share, e.g. validation seeds 20000).
+of a model's folders share, e.g. validation seeds 20000); several, e.g. 10000,10050 (the reported seeds' two ranges),
+pool each checkpoint's evaluations from those seeds into one point.
 """
 
 import argparse
@@ -57,34 +58,39 @@ def seconds_to(step: int, run: dict, rates: list[tuple[int, float]]) -> float:
     return setup + (run["seconds"] - setup) * done / total
 
 
-def points(folder: Path, first_seed: int | None) -> list[dict]:
-    """One point per evaluated checkpoint of the experiment folder (all training seeds' runs)."""
-    found = []
+def points(folder: Path, first_seeds: set[int] | None) -> list[dict]:
+    """One point per evaluated checkpoint of the experiment folder (all training seeds' runs); with first_seeds,
+    a checkpoint's evaluations from those seeds pooled into one point."""
+    checkpoints: dict[tuple, list[Path]] = {}
     for evaluation in sorted((folder / "evals").glob("seed*_from*")):
         match = EVAL_FOLDER.fullmatch(evaluation.name)
-        if not match or (first_seed is not None and int(match["first"]) != first_seed):
+        if not match or (first_seeds is not None and int(match["first"]) not in first_seeds):
             continue
-        run, rates = training(folder, int(match["seed"]))
-        step = int(match["step"]) if match["step"] else run["steps"]
-        _, episodes = read_journal(journal_of(evaluation))
-        policy = [e for e in episodes if e["source"] == "policy"]
+        checkpoint = (int(match["seed"]), match["step"]) + ((int(match["first"]),) if first_seeds is None else ())
+        checkpoints.setdefault(checkpoint, []).append(evaluation)
+    found = []
+    for (training_seed, step_name, *_), evaluations in checkpoints.items():
+        run, rates = training(folder, training_seed)
+        step = int(step_name) if step_name else run["steps"]
+        policy = [e for evaluation in evaluations for e in read_journal(journal_of(evaluation))[1] if e["source"] == "policy"]
         successes = sum(bool(e["success"]) for e in policy)
-        found.append({"folder": str(evaluation), "training_seed": int(match["seed"]), "first_seed": int(match["first"]),
-                      "step": step, "train_minutes": seconds_to(step, run, rates) / 60, "episodes": len(policy),
-                      "successes": successes, "rate": successes / max(1, len(policy)),
+        firsts = sorted(int(EVAL_FOLDER.fullmatch(e.name)["first"]) for e in evaluations)
+        found.append({"folder": "+".join(map(str, evaluations)), "training_seed": training_seed, "first_seed": firsts[0],
+                      "first_seeds": firsts, "step": step, "train_minutes": seconds_to(step, run, rates) / 60,
+                      "episodes": len(policy), "successes": successes, "rate": successes / max(1, len(policy)),
                       "ci95": list(wilson_interval(successes, len(policy)))})
     return found
 
 
-def curve(model: str, first_seed: int | None) -> tuple[str, list[dict]]:
+def curve(model: str, first_seeds: set[int] | None) -> tuple[str, list[dict]]:
     label, equals, dirs = model.partition("=")
     if not equals or not dirs:
         raise SystemExit(f"success_curve: --model {model!r}: give LABEL=DIR[+DIR...]")
-    found = [p for d in dirs.split("+") for p in points(Path(d), first_seed)]
+    found = [p for d in dirs.split("+") for p in points(Path(d), first_seeds)]
     firsts = {p["first_seed"] for p in found}
-    if first_seed is None and len(firsts) > 1:
+    if first_seeds is None and len(firsts) > 1:
         raise SystemExit(f"success_curve: {label}: evaluations from seeds {', '.join(map(str, sorted(firsts)))}; "
-                         "choose one with --seeds FIRST")
+                         "choose with --seeds FIRST (or pool ranges: --seeds FIRST,FIRST)")
     if not found:
         raise SystemExit(f"success_curve: {label}: no evaluations (evals/seedN_fromF[_stepS]/) in {dirs}")
     return label, sorted(found, key=lambda p: p["train_minutes"])
@@ -125,10 +131,18 @@ def markdown(curves: dict[str, list[dict]]) -> str:
     return "\n".join(lines)
 
 
+def first_seeds(text: str) -> set[int]:
+    try:
+        return {int(item) for item in text.split(",")}
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give first seeds as FIRST or FIRST,FIRST (e.g. 10000,10050)") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", action="append", required=True, metavar="LABEL=DIR[+DIR...]")
-    parser.add_argument("--seeds", type=int, metavar="FIRST", help="only evaluations on seeds from FIRST (e.g. 20000)")
+    parser.add_argument("--seeds", type=first_seeds, metavar="FIRST[,FIRST...]",
+                        help="only evaluations on seeds from FIRST (e.g. 20000); several pool their episodes per checkpoint")
     parser.add_argument("--x", choices=("minutes", "steps"), default="minutes",
                         help="the figure's horizontal axis: training wall time (default) or steps")
     parser.add_argument("--chart", type=Path, help="write the figure here (PNG)")

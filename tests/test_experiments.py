@@ -373,6 +373,14 @@ def test_success_against_training_time_from_published_runs(tmp_path):
     assert minutes == sorted(minutes) and abs(minutes[-1] - json.loads(gzip.decompress((curve / "train/run.json.gz").read_bytes()))["seconds"] / 60) < 1e-9
     with pytest.raises(SystemExit, match="LABEL=DIR"):
         success_curve.main(["--model", str(two)])
+    # the reported seeds' two ranges pooled into one point per checkpoint, or one range alone
+    rvt = results / "rvt_18_onegpu_h200x2"
+    for seeds, expected in (("10000,10050", [(850, 214, 1800, [10000, 10050])]), ("10000", [(850, 104, 900, [10000])])):
+        assert success_curve.main(["--model", f"rvt={rvt}", "--seeds", seeds, "--json", str(points)]) == 0
+        assert [(p["step"], p["successes"], p["episodes"], p["first_seeds"])
+                for p in json.loads(points.read_text())["rvt"]] == expected
+    with pytest.raises(SystemExit, match="--seeds FIRST"):
+        success_curve.main(["--model", f"rvt={rvt}"])
 
 
 SCHEDULES = runner.EXPERIMENTS.parent / "scripts" / "schedules_side_by_side.sh"

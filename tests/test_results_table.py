@@ -149,3 +149,17 @@ def test_two_evaluations_are_compared_episode_by_episode(tmp_path):
     second = folder.parent / "seed0_from10050"
     with pytest.raises(SystemExit, match="share no episode"):
         results_table.paired(records, results_table.load_records(str(second))[0])
+
+
+def test_a_difference_too_sure_for_a_double_is_printed_as_a_bound():
+    """RVT after 850 steps against RVT-2 after 3,500 on the same 1,800 episodes: the exact McNemar p underflows
+    to 0 in floating point, and the table says it is below 1e-300 instead of printing a p of 0."""
+    def both_ranges(name):
+        evals = REPOSITORY / "benchmarks" / "results" / name / "evals"
+        return results_table.load_records(f"{evals / 'seed0_from10000'}+{evals / 'seed0_from10050'}")[0]
+
+    against = results_table.paired(both_ranges("rvt_18_onegpu_h200x2"), both_ranges("rvt2_18_onegpu_3500_h200x2"))
+    assert against["episodes"] == 1800 and against["only_other"] > 1000 and against["p"] == 0.0
+    line = results_table.paired_markdown("RVT", {"RVT-2": against}).splitlines()[-1]
+    assert line.endswith("| < 1e-300 |")
+    assert results_table.p_value(1.1e-5) == "1.1e-05"

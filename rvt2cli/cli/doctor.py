@@ -33,7 +33,8 @@ def run(args) -> int:
     else:
         lines.append(("CUDA", "no GPU (training and inference on the CPU)"))
     for label, module in (("numpy", "numpy"), ("warp", "warp"), ("sapien", "sapien"), ("mani-skill", "mani_skill"),
-                          ("mplib", "mplib"), ("mcap", "mcap"), ("ROS bags", "rosbags"), ("onnxruntime", "onnxruntime")):
+                          ("mplib", "mplib"), ("mcap", "mcap"), ("ROS bags", "rosbags"), ("onnxruntime", "onnxruntime"),
+                          ("websockets", "websockets"), ("msgpack", "msgpack")):  # rvt2 serve, --shared-policy
         lines.append((label, _version(module)))
     if not args.no_render_check:
         from rvt2cli.runtime import use_vulkan_driver

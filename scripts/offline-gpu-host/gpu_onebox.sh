@@ -129,6 +129,9 @@ PY
     # kept in $W for `results` ($OUT is emptied before every command)
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$W/gpu.txt"
     "${RVT2[@]}" doctor | tee -a "$W/gpu.txt"
+    if grep -q MISSING "$W/gpu.txt"; then  # a stale site: the phases that import it fail later, not here
+      echo "setup: WARNING: the carried site lacks a library rvt2 loads (MISSING above): run pack_gpu_wheels.sh again"
+    fi
     cp "$W/gpu.txt" "$OUT/"
     phase setup $(( $(clock) - t ))
     ;;
