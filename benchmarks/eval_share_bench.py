@@ -1,15 +1,17 @@
-"""An evaluation's workers sharing one policy against a policy in each worker: GPU memory, speed, outcomes.
+"""An evaluation's workers sharing one policy against a policy in each worker (eager, and on CUDA replayed as a CUDA
+graph): GPU memory, speed, outcomes.
 
     python -m benchmarks.eval_share_bench (--checkpoint RUN | --random rvt2) --tasks push_cube,stack_cube
         [--episodes 4] [--workers 14] [--device cuda] [--keyframe-budget 25] [--json out.json]
 
-Runs `evaluate` (what `rvt2 eval` runs) on the same seeds twice: each worker process loading the checkpoint on
+Runs `evaluate` (what `rvt2 eval` runs) on the same seeds: each worker process loading the checkpoint on
 --device (the default), then `--shared-policy` (the checkpoint loaded once, in the main process, answering
-every worker's keyframe requests over the loopback, batched). While each runs, nvidia-smi is read every half
-second: the GPU memory in use (its peak above what was in use before) and, where the machine lists them, the
-processes holding some. Reports episodes per minute, keyframes per second, and how many episodes ended the
-same way both times (exactly all of them on the CPU; on a GPU a batched forward may differ from a lone one in
-the last bits). `--random CONFIG`: a checkpoint of that config with random weights (speed and memory depend on
+every worker's keyframe requests over the loopback, batched), then on a CUDA device `--cuda-graph` (each
+worker's step replayed as one CUDA graph). While each runs, nvidia-smi is read every half second: the GPU
+memory in use (its peak above what was in use before) and, where the machine lists them, the processes holding
+some. Reports episodes per minute, keyframes per second, and how many episodes of each other way ended as with
+a policy per worker (all of them on the CPU; on a GPU a batched forward may differ from a lone one in the last
+bits, and the graph must not). `--random CONFIG`: a checkpoint of that config with random weights (speed and memory depend on
 sizes; its episodes mostly run out of keyframes).
 """
 
@@ -99,20 +101,25 @@ def main() -> None:
                                                               {t: list(get_task(t).scene_bounds) for t in tasks}))
         common = dict(checkpoint=checkpoint, tasks=tasks, episodes=args.episodes, workers=args.workers, device=args.device,
                       keyframe_budget=args.keyframe_budget)
+        ways = {"policy_per_worker": {}, "shared_policy": {"shared_policy": True}}
+        if args.device.startswith("cuda"):
+            ways["cuda_graph_per_worker"] = {"cuda_graph": True}  # each worker's step replayed as a CUDA graph
         runs = {}
-        for name, shared in (("policy_per_worker", False), ("shared_policy", True)):
-            runs[name] = run(EvalOptions(**common, shared_policy=shared, out=str(Path(tmp) / name)))
+        for name, settings in ways.items():
+            runs[name] = run(EvalOptions(**common, **settings, out=str(Path(tmp) / name)))
             r = runs[name]
-            print(f"{name:>17}: {r['episodes']} episodes in {r['seconds']:.0f} s ({r['episodes_per_min']:.1f}/min, "
+            print(f"{name:>21}: {r['episodes']} episodes in {r['seconds']:.0f} s ({r['episodes_per_min']:.1f}/min, "
                   f"{r['keyframes_per_s']:.2f} keyframes/s), {r['successes']} successes, GPU memory at peak "
                   f"{r['gpu_memory']['peak_mib_above_idle']:,} MiB above idle, {r['gpu_memory']['peak_processes_listed']} "
                   "processes listed", flush=True)
-    a, b = runs["policy_per_worker"].pop("_outcomes"), runs["shared_policy"].pop("_outcomes")
-    same = sum(a[k] == b.get(k) for k in a)
-    print(f"episodes that ended the same way both times: {same} of {len(a)}")
+    outcomes = {name: r.pop("_outcomes") for name, r in runs.items()}
+    first = outcomes.pop("policy_per_worker")
+    same = {name: sum(first[k] == other.get(k) for k in first) for name, other in outcomes.items()}
+    for name, count in same.items():
+        print(f"episodes that ended as with a policy per worker, {name}: {count} of {len(first)}")
     result = {"benchmark": "eval_share", "machine": describe(), "checkpoint": args.checkpoint or f"random {args.random}",
               "tasks": list(tasks), "episodes_per_task": args.episodes, "workers": args.workers, "device": args.device,
-              "keyframe_budget": args.keyframe_budget, "runs": runs, "same_outcomes": same, "episodes": len(a)}
+              "keyframe_budget": args.keyframe_budget, "runs": runs, "same_outcomes": same, "episodes": len(first)}
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))

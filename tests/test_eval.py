@@ -230,3 +230,49 @@ def test_offline_bad_input_is_one_line(tiny_checkpoint, tmp_path, cli):
                           "eval --offline scores each demo under the words its checkpoint was trained to read", "--first-phrasing")
     record("push_cube", 1, tmp_path / "other", options=RecordOptions(cameras=("front",), image_size=32))
     assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--offline", tmp_path / "other"), "not trained on task(s) push_cube")
+
+
+def test_a_cuda_graph_needs_a_checkpoint_on_a_cuda_device(tiny_checkpoint, tmp_path, cli):
+    """`--cuda-graph` replays a policy loaded here on a GPU: on the CPU, or beside --shared-policy, one line."""
+    run_dir = tiny_checkpoint[0]
+    assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--cuda-graph", "--out", tmp_path / "e"),
+                          "--cuda-graph", "--device cuda")
+    assert_one_line_error(cli("eval", "--checkpoint", run_dir, "--cuda-graph", "--device", "cuda", "--shared-policy",
+                              "--workers", "2", "--out", tmp_path / "e"), "--cuda-graph", "without --shared-policy")
+    assert not (tmp_path / "e").exists()
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a CUDA device")
+def test_on_a_cuda_device_a_graphed_policy_answers_as_the_eager_one(aimed_checkpoint, tmp_path):
+    """The replayed graph gives the eager step's keyframe to the bit, for clouds of several sizes (a larger one
+    captures the graph again), with and without an aim; and a closed-loop evaluation with --cuda-graph ends every
+    episode as the eager one does, keyframe for keyframe."""
+    import torch
+
+    from rvt2cli.model.graphed import GraphedPolicy
+    from rvt2cli.model.observation import Observation
+    from rvt2cli.train.checkpoint import load_policy
+
+    policy, _ = load_policy(aimed_checkpoint, device="cuda")
+    graphed = GraphedPolicy(policy)
+    cfg, g = policy.cfg, torch.Generator(device="cpu").manual_seed(0)
+    for n, aimed in ((9_000, False), (12_000, True), (20_000, False), (3_000, True)):
+        obs = Observation(points=torch.rand(1, n, 3, generator=g) * 2 - 1, rgb=torch.rand(1, n, 3, generator=g),
+                          num_points=torch.tensor([n]), proprio=torch.rand(1, cfg.proprio_dim, generator=g),
+                          lang=torch.randn(1, cfg.lang_tokens, cfg.lang_dim, generator=g),
+                          aim=torch.tensor([[0.2, 0.0, 0.05]]) if aimed else None).to("cuda")
+        want, got = policy.predict(obs), graphed.predict(obs)
+        for field in ("position", "rot_bins", "quaternion", "gripper_open", "ignore_collisions", "stage1_position"):
+            assert torch.equal(getattr(want, field), getattr(got, field)), (n, aimed, field)
+    assert graphed.predictor.max_points == 32_768  # captured at 16,384, again at 32,768 for 20,000 points
+
+    options = dict(checkpoint=str(aimed_checkpoint), device="cuda", episodes=2, keyframe_budget=3)
+    eager = evaluate(EvalOptions(out=str(tmp_path / "eager"), **options))
+    replayed = evaluate(EvalOptions(out=str(tmp_path / "graph"), cuda_graph=True, **options))
+
+    def outcomes(result) -> dict:
+        return {job: (o.success, o.failure, o.control_steps, [(s.keyframe, s.retry, s.reached) for s in o.steps])
+                for job, o in result.outcomes}
+
+    assert outcomes(replayed) == outcomes(eager) and all(o[3] for o in outcomes(eager).values())
+    assert replayed.report["cuda_graph"] is True and "CUDA graph" in (tmp_path / "graph" / "eval.md").read_text()

@@ -37,6 +37,9 @@ def register(subparsers) -> None:
                         "processes ask it for keyframes over the loopback, batched, every forward pass at N requests (padded) so "
                         "that an episode does not depend on which others asked with it (docs/SERVING.md); default: each "
                         "worker loads its own copy")
+    p.add_argument("--cuda-graph", action="store_true",
+                   help="with --device cuda: each worker replays its policy step as one CUDA graph (captured at its first "
+                        "keyframe), the same keyframes as the eager step without its launch gaps")
     p.add_argument("--oracle", action="store_true", help="also run the executor on ground-truth keyframes")
     p.add_argument("--demos", nargs="+", metavar="PATH", help="with --oracle: use these recorded demos' keyframes (and seeds)")
     p.add_argument("--instruction", help="evaluate with this phrasing of the instruction instead of the task's")
@@ -98,7 +101,7 @@ def run(args) -> int:
                        max_replans=args.max_replans, step_budget_scale=args.step_budget_scale, out=args.out,
                        device=args.device, resume=args.resume, replay=args.replay, insertion_search=args.insertion_search,
                        stage2_min_points=args.stage2_min_points, policy_url=args.policy_url, token=token,
-                       shared_policy=args.shared_policy)
+                       shared_policy=args.shared_policy, cuda_graph=args.cuda_graph)
     bars = []
 
     def on_start(total):

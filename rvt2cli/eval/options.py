@@ -38,6 +38,7 @@ class EvalOptions:
     policy_url: str | None = None     # a policy served by `rvt2 serve` instead of a checkpoint loaded here
     token: str | None = field(default=None, repr=False)  # the served policy's shared secret (never in a journal)
     shared_policy: bool = False       # one copy of the checkpoint in the main process answers every worker
+    cuda_graph: bool = False          # each worker's policy step replayed as one CUDA graph (the same keyframes)
 
     @property
     def policy(self) -> str | None:

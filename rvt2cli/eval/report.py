@@ -204,6 +204,8 @@ def markdown(report: dict) -> str:
         lines += ["", f"Not in the checkpoint's training set (a generalisation test): {', '.join(report['untrained_tasks'])}."]
     if report.get("shared_policy"):
         lines += ["", "Keyframes from one copy of the policy in the main process, shared by the workers (--shared-policy)."]
+    if report.get("cuda_graph"):
+        lines += ["", "Each worker's policy step replayed as one CUDA graph (--cuda-graph)."]
     lines += ["", head, "|" + "---|" * (4 * len(sources) + 3)]
     for task, per in report["tasks"].items():
         cells = []

@@ -59,6 +59,10 @@ class _Worker:
             from rvt2cli.train.checkpoint import load_policy
 
             policy, ckpt = load_policy(opts.checkpoint, device=opts.device, stage2_min_points=opts.stage2_min_points)
+            if opts.cuda_graph:
+                from rvt2cli.model.graphed import GraphedPolicy
+
+                policy = GraphedPolicy(policy)
             self.policy = PolicySource(policy, ckpt, opts.device)
             self.rigs = ckpt.info.get("rigs", {})
         if opts.policy_url:
@@ -181,7 +185,7 @@ def report_meta(opts: EvalOptions, checkpoint_path: str | None, tasks: list[str]
             "paraphrases": opts.paraphrases, "first_phrasing": opts.first_phrasing, "variations": opts.variations,
             "step_budget_scale": opts.step_budget_scale, "insertion_search": opts.insertion_search,
             "search_grids": search_grids(tasks) if opts.insertion_search else {},
-            "untrained_tasks": untrained, "shared_policy": opts.shared_policy, "seconds": seconds}
+            "untrained_tasks": untrained, "shared_policy": opts.shared_policy, "cuda_graph": opts.cuda_graph, "seconds": seconds}
 
 
 def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
@@ -196,6 +200,9 @@ def evaluate(opts: EvalOptions, on_outcome=None, on_start=None) -> EvalResult:
     if opts.shared_policy and (not opts.checkpoint or opts.workers < 2):
         raise UserError("--shared-policy loads --checkpoint once, in this process, for the --workers processes to share; "
                         "give --checkpoint and --workers 2 or more")
+    if opts.cuda_graph and (not opts.checkpoint or opts.shared_policy or not opts.device.startswith("cuda")):
+        raise UserError("--cuda-graph replays each worker's policy step as a CUDA graph: give --checkpoint and --device cuda, "
+                        "without --shared-policy")
     if opts.policy_url and (opts.device != "cpu" or opts.stage2_min_points is not None):
         raise UserError("--device and --stage2-min-points set up a checkpoint loaded here; a served policy (--policy-url) "
                         "runs as `rvt2 serve` was started")

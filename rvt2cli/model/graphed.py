@@ -1,13 +1,14 @@
 """A policy step as one CUDA graph: every kernel of both stages (renders included) launched by a
 single replay, which removes the ~2 ms of Python and launch gaps an eager step spends on a fast GPU.
 
-The graph is captured for one cloud size; clouds are padded to it (the renderer ignores padding
-through `num_points`). Replays read the static input buffers and overwrite the static outputs.
+The graph is captured for one cloud size; clouds are padded to it with zero rows (the renderer and the
+point counts ignore padding through `num_points`, as in a batch of clouds of several sizes). Replays read
+the static input buffers and overwrite the static outputs.
 """
 
 import torch
 
-from rvt2cli.model.policy import Observation, RVT2Policy
+from rvt2cli.model.policy import Observation, Prediction, RVT2Policy
 
 
 class GraphedPredictor:
@@ -36,21 +37,53 @@ class GraphedPredictor:
     def _step(self) -> tuple[torch.Tensor, ...]:
         with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=self.autocast):
             pred = self.policy.predict(self.inputs)
-        return pred.position, pred.rot_bins, pred.gripper_open, pred.ignore_collisions
+        return (pred.position, pred.rot_bins, pred.quaternion, pred.gripper_open, pred.ignore_collisions,
+                pred.stage1_position)
 
-    def __call__(self, obs: Observation) -> tuple[torch.Tensor, ...]:
-        """obs with batch 1 and at most max_points points -> (position, rot_bins, gripper_open, ignore_collisions)."""
+    def predict(self, obs: Observation) -> Prediction:
+        """`RVT2Policy.predict` of one observation of at most max_points points, by one replay (no stage outputs)."""
         n = obs.points.shape[1]
         if obs.points.shape[0] != 1 or n > self.max_points:
             raise ValueError(f"captured for 1 cloud of at most {self.max_points} points, got {tuple(obs.points.shape)}")
         self.inputs.points[:, :n].copy_(obs.points)
+        self.inputs.points[:, n:].zero_()
         self.inputs.rgb[:, :n].copy_(obs.rgb)
+        self.inputs.rgb[:, n:].zero_()
         self.inputs.num_points.copy_(obs.num_points)
         self.inputs.proprio.copy_(obs.proprio)
         self.inputs.lang.copy_(obs.lang)
-        if obs.aim is None:
+        if obs.aim is None:  # an aim of zeros moves nothing: the TCP's position is the heatmaps' point
             self.inputs.aim.zero_()
         else:
             self.inputs.aim.copy_(obs.aim)
         self.graph.replay()
-        return tuple(o.clone() for o in self.outputs)
+        position, rot_bins, quaternion, gripper_open, ignore_collisions, stage1 = (o.clone() for o in self.outputs)
+        return Prediction(position=position, rot_bins=rot_bins, quaternion=quaternion, gripper_open=gripper_open,
+                          ignore_collisions=ignore_collisions, stage1_position=stage1, stages=[])
+
+    def __call__(self, obs: Observation) -> tuple[torch.Tensor, ...]:
+        """obs with batch 1 and at most max_points points -> (position, rot_bins, gripper_open, ignore_collisions)."""
+        pred = self.predict(obs)
+        return pred.position, pred.rot_bins, pred.gripper_open, pred.ignore_collisions
+
+
+class GraphedPolicy:
+    """A policy whose one-observation `predict` replays a CUDA graph (`rvt2 eval --cuda-graph`: each worker asks
+    for one keyframe at a time), answering what the policy's eager `predict` answers. The graph is captured at
+    the first call, for that cloud's size rounded up, and again, larger, when a cloud outgrows it; batches of
+    several observations run eagerly."""
+
+    ROUND_POINTS = 16_384
+
+    def __init__(self, policy: RVT2Policy, autocast: bool = False):
+        self.policy, self.cfg, self.autocast = policy, policy.cfg, autocast
+        self.predictor: GraphedPredictor | None = None
+
+    def predict(self, obs: Observation) -> Prediction:
+        if obs.points.shape[0] != 1:
+            return self.policy.predict(obs)
+        if self.predictor is None or obs.points.shape[1] > self.predictor.max_points:
+            self.predictor = None  # the old graph's memory goes back before the larger one is captured
+            size = -(-obs.points.shape[1] // self.ROUND_POINTS) * self.ROUND_POINTS
+            self.predictor = GraphedPredictor(self.policy, size, autocast=self.autocast)
+        return self.predictor.predict(obs)

@@ -231,9 +231,9 @@ PY
     python3 -m pytest -q -p no:cacheprovider tests/test_capture.py 2>&1 | tail -15 | tee "$W/capture_tests.txt"
     phase capturetests $(( $(clock) - t ))
     ;;
-  gputests)  # every test CI skips for want of CUDA or NVIDIA rendering (the serving ones need the websockets/msgpack wheels)
+  gputests)  # every test CI skips for want of CUDA or NVIDIA rendering (capture, serving's fixed batch, eval's CUDA graph)
     t=$(clock)
-    python3 -m pytest -q -p no:cacheprovider -rs tests/test_capture.py tests/test_serve.py -k "capture or gpu or cuda" 2>&1 \
+    python3 -m pytest -q -p no:cacheprovider -rs tests/test_capture.py tests/test_serve.py tests/test_eval.py -k "capture or gpu or cuda" 2>&1 \
       | tail -20 | tee "$W/gpu_tests.txt"
     phase gputests $(( $(clock) - t ))
     ;;
