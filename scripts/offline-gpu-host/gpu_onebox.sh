@@ -17,7 +17,7 @@
 #
 # Phases: stash, setup, experiment FILE PHASES (benchmarks/experiment.py: record, heldout, train, eval,
 # offline, oracle, or all), results, weights FIRST COUNT, restore, bg NAME PHASE... / wait NAME; and the
-# building blocks of the benchmarks: bench, servebench, evalsharebench, record, keyframes, merged, heldout, train,
+# building blocks of the benchmarks: untiltrain, bench, servebench, evalsharebench, record, keyframes, merged, heldout, train,
 # loopbench, memorybench, ddpbench, eval, oracle, replay, repro, offline, recordbench, capturebench, recordprofile,
 # evalprofile, capturetests, gputests.
 # Settings (environment): EXPERIMENT_ARGS (more options of benchmarks/experiment.py, e.g. "--training-seeds 1"),
@@ -149,6 +149,9 @@ PY
     t=$(clock)
     python3 -m benchmarks.serve_bench --device "$DEVICE" --config "$CONFIG" ${SERVEBENCH_ARGS:-} --json "$W/serve_bench.json" 2>&1 | tail -12
     phase servebench $(( $(clock) - t ))
+    ;;
+  untiltrain)  # wait until a training in $W writes its first train.csv row: side phases on a free GPU start after recording
+    until ls "$W"/*/runs/*/train.csv >/dev/null 2>&1; do sleep 10; done
     ;;
   evalsharebench)  # an evaluation's WORKERS sharing one policy (--shared-policy) against one each (benchmarks/eval_share_bench.py)
     t=$(clock)
@@ -374,7 +377,7 @@ print("\n".join(all_pieces(json.load(open(sys.argv[1])))))' "$W/export/$RUN/mani
     break
     ;;
   *)
-    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile|capturetests|gputests|servebench|evalsharebench" >&2
+    echo "usage: $0 stash|setup|experiment FILE PHASES|results|weights FIRST COUNT|restore|bg NAME PHASE...|wait NAME|untiltrain|bench|record|keyframes|heldout|merged|loopbench|memorybench|train|ddpbench|eval|oracle|replay|repro|offline|recordbench|capturebench|recordprofile|evalprofile|capturetests|gputests|servebench|evalsharebench" >&2
     exit 2
     ;;
   esac
