@@ -61,21 +61,21 @@ def seconds_to(step: int, run: dict, rates: list[tuple[int, float]]) -> float:
 def points(folder: Path, first_seeds: set[int] | None) -> list[dict]:
     """One point per evaluated checkpoint of the experiment folder (all training seeds' runs); with first_seeds,
     a checkpoint's evaluations from those seeds pooled into one point."""
-    checkpoints: dict[tuple, list[Path]] = {}
+    checkpoints: dict[tuple, list[tuple[Path, int]]] = {}  # (evaluation folder, its first seed)
     for evaluation in sorted((folder / "evals").glob("seed*_from*")):
         match = EVAL_FOLDER.fullmatch(evaluation.name)
         if not match or (first_seeds is not None and int(match["first"]) not in first_seeds):
             continue
         checkpoint = (int(match["seed"]), match["step"]) + ((int(match["first"]),) if first_seeds is None else ())
-        checkpoints.setdefault(checkpoint, []).append(evaluation)
+        checkpoints.setdefault(checkpoint, []).append((evaluation, int(match["first"])))
     found = []
     for (training_seed, step_name, *_), evaluations in checkpoints.items():
         run, rates = training(folder, training_seed)
         step = int(step_name) if step_name else run["steps"]
-        policy = [e for evaluation in evaluations for e in read_journal(journal_of(evaluation))[1] if e["source"] == "policy"]
+        policy = [e for evaluation, _ in evaluations for e in read_journal(journal_of(evaluation))[1] if e["source"] == "policy"]
         successes = sum(bool(e["success"]) for e in policy)
-        firsts = sorted(int(EVAL_FOLDER.fullmatch(e.name)["first"]) for e in evaluations)
-        found.append({"folder": "+".join(map(str, evaluations)), "training_seed": training_seed, "first_seed": firsts[0],
+        firsts = sorted(first for _, first in evaluations)
+        found.append({"folder": "+".join(str(evaluation) for evaluation, _ in evaluations), "training_seed": training_seed, "first_seed": firsts[0],
                       "first_seeds": firsts, "step": step, "train_minutes": seconds_to(step, run, rates) / 60,
                       "episodes": len(policy), "successes": successes, "rate": successes / max(1, len(policy)),
                       "ci95": list(wilson_interval(successes, len(policy)))})

@@ -68,10 +68,9 @@ class GraphedPredictor:
 
 
 class GraphedPolicy:
-    """A policy whose one-observation `predict` replays a CUDA graph (`rvt2 eval --cuda-graph`: each worker asks
+    """A policy whose `predict` of one observation replays a CUDA graph (`rvt2 eval --cuda-graph`: each worker asks
     for one keyframe at a time), answering what the policy's eager `predict` answers. The graph is captured at
-    the first call, for that cloud's size rounded up, and again, larger, when a cloud outgrows it; batches of
-    several observations run eagerly."""
+    the first call, for that cloud's size rounded up, and again, larger, when a cloud outgrows it."""
 
     ROUND_POINTS = 16_384
 
@@ -80,8 +79,6 @@ class GraphedPolicy:
         self.predictor: GraphedPredictor | None = None
 
     def predict(self, obs: Observation) -> Prediction:
-        if obs.points.shape[0] != 1:
-            return self.policy.predict(obs)
         if self.predictor is None or obs.points.shape[1] > self.predictor.max_points:
             self.predictor = None  # the old graph's memory goes back before the larger one is captured
             size = -(-obs.points.shape[1] // self.ROUND_POINTS) * self.ROUND_POINTS
