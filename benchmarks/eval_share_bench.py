@@ -2,9 +2,10 @@
 graph): GPU memory, speed, outcomes.
 
     python -m benchmarks.eval_share_bench (--checkpoint RUN | --random rvt2) --tasks push_cube,stack_cube
-        [--episodes 4] [--workers 14] [--device cuda] [--keyframe-budget 25] [--json out.json]
+        [--episodes 4] [--seed 20000] [--workers 14] [--device cuda] [--keyframe-budget 25] [--json out.json]
 
-Runs `evaluate` (what `rvt2 eval` runs) on the same seeds: each worker process loading the checkpoint on
+Runs `evaluate` (what `rvt2 eval` runs) on the same seeds (from 20000: validation seeds, since its result may choose
+how the reported seeds are evaluated): each worker process loading the checkpoint on
 --device (the default), then `--shared-policy` (the checkpoint loaded once, in the main process, answering
 every worker's keyframe requests over the loopback, batched), then on a CUDA device `--cuda-graph` (each
 worker's step replayed as one CUDA graph). While each runs, nvidia-smi is read every half second: the GPU
@@ -88,6 +89,7 @@ def main() -> None:
     parser.add_argument("--random", metavar="CONFIG", help="instead: a checkpoint of this config with random weights")
     parser.add_argument("--tasks", default="push_cube,stack_cube")
     parser.add_argument("--episodes", type=int, default=4, help="per task")
+    parser.add_argument("--seed", type=int, default=20_000, help="the first seed (default: the validation seeds')")
     parser.add_argument("--workers", type=int, default=14)
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--keyframe-budget", type=int, default=25)
@@ -99,7 +101,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         checkpoint = args.checkpoint or str(random_checkpoint(args.random, Path(tmp) / "run",
                                                               {t: list(get_task(t).scene_bounds) for t in tasks}))
-        common = dict(checkpoint=checkpoint, tasks=tasks, episodes=args.episodes, workers=args.workers, device=args.device,
+        common = dict(checkpoint=checkpoint, tasks=tasks, episodes=args.episodes, seed=args.seed, workers=args.workers, device=args.device,
                       keyframe_budget=args.keyframe_budget)
         ways = {"policy_per_worker": {}, "shared_policy": {"shared_policy": True}}
         if args.device.startswith("cuda"):
@@ -118,7 +120,7 @@ def main() -> None:
     for name, count in same.items():
         print(f"episodes that ended as with a policy per worker, {name}: {count} of {len(first)}")
     result = {"benchmark": "eval_share", "machine": describe(), "checkpoint": args.checkpoint or f"random {args.random}",
-              "tasks": list(tasks), "episodes_per_task": args.episodes, "workers": args.workers, "device": args.device,
+              "tasks": list(tasks), "episodes_per_task": args.episodes, "seed": args.seed, "workers": args.workers, "device": args.device,
               "keyframe_budget": args.keyframe_budget, "runs": runs, "same_outcomes": same, "episodes": len(first)}
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

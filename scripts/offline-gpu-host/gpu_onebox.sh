@@ -3,7 +3,7 @@
 # carried in per transfer, at most 10 minutes per command, /tmp kept between commands while the machine
 # stays up). On a GPU workstation with rvt2 installed, run `python -m benchmarks.experiment` directly.
 #
-# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (24 MiB each) + site.sha256
+# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (20 MiB each) + site.sha256
 # Offline host, one command per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders);
 # K=scripts/offline-gpu-host, E=experiments/rvt2_25demos.toml:
 #   bash $K/gpu_onebox.sh stash                         # keep the carried parts in /tmp/w
@@ -26,7 +26,7 @@
 # PIECES and WEIGHTS (carried weight pieces, and where stash keeps them for restore), EXTRA_PYTHONPATH (a folder
 # searched first, e.g. a sitecustomize.py); for the building blocks EPISODES (per task), TASK_SET (recordbench),
 # RUN, BATCH (global), STEPS, TRAIN_ARGS, DATA, MEMORYBENCH_ARGS, OFFLINE_DEMOS, EVAL_EPISODES, EVAL_ARGS, EVAL_NAME and RUNS (results),
-# SHARE_EPISODES (per task) and SHARE_KEYFRAMES (the keyframe budget) for evalsharebench;
+# SHARE_EPISODES (per task), SHARE_KEYFRAMES (the keyframe budget) and SHARE_CHECKPOINT (a trained run) for evalsharebench;
 # EXACT=1: `weights` sends float32 weights as trained (an evaluation to be resumed elsewhere: 25 pieces for rvt2-18);
 # RESUMABLE=1: also the training state and the run's logs (a training stopped by --time-limit, resumed elsewhere).
 set -euo pipefail
@@ -155,7 +155,9 @@ PY
     ;;
   evalsharebench)  # an evaluation's WORKERS sharing one policy (--shared-policy) against one each (benchmarks/eval_share_bench.py)
     t=$(clock)
-    python3 -m benchmarks.eval_share_bench --random "$CONFIG" --tasks "$(echo $TASKS | tr ' ' ,)" --episodes "${SHARE_EPISODES:-2}" \
+    # SHARE_CHECKPOINT: a trained run (realistic keyframes per episode) instead of random weights of CONFIG
+    model=(--random "$CONFIG"); if [ -n "${SHARE_CHECKPOINT:-}" ]; then model=(--checkpoint "$SHARE_CHECKPOINT"); fi
+    python3 -m benchmarks.eval_share_bench "${model[@]}" --tasks "$(echo $TASKS | tr ' ' ,)" --episodes "${SHARE_EPISODES:-2}" \
       --workers "$WORKERS" --device "$DEVICE" --keyframe-budget "${SHARE_KEYFRAMES:-10}" --json "$W/eval_share_bench.json" 2>&1 | tail -4
     phase evalsharebench $(( $(clock) - t ))
     ;;

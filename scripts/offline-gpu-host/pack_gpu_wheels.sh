@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Pack what rvt2 needs on a GPU machine without network access (Python 3.12, CUDA torch, numpy 2, nothing
-# else installed) into .gpu/site.part.* (24 MiB each: the host takes 64 MiB per transfer, the 38 MB working tree
+# else installed) into .gpu/site.part.* (20 MiB each: the host takes 64 MiB per transfer, the 43 MB working tree
 # included), for gpu_onebox.sh. Run it from a machine with network access, in the repository.
 #
 # The simulator stack (SAPIEN, ManiSkill, mplib with numpy 1.26: mplib 0.1.1 crashes with numpy 2),
@@ -44,7 +44,7 @@ mkdir "$work/site"
 $PY scripts/embed_instructions.py --out "$work/site/embeddings.safetensors"
 mkdir -p .gpu
 rm -f .gpu/site.part.*
-tar -cf - -C "$work/site" . | xz -T2 -9 | split -b 24m - .gpu/site.part.
+tar -cf - -C "$work/site" . | xz -T2 -9 | split -b 20m - .gpu/site.part.
 (cd .gpu && sha256sum site.part.* > site.sha256)
 ls -la .gpu/site.part.*
 # The Vulkan and GL loaders as Debian packages: a GPU image may have NVIDIA's driver and no loader
