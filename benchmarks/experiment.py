@@ -217,6 +217,17 @@ def evaluations(evaluate: dict, chosen: tuple[str, ...] | None = None,
     return runs
 
 
+def tasks_evaluated(tasks: list[str], options: dict) -> int:
+    """How many tasks an evaluation with these options runs episodes of: options' `tasks` (as `rvt2 eval --tasks`
+    reads it), and of those only the tasks with a variation to spread them over (`--variations held-out` leaves
+    out a task without a held-out split, as `rvt2 eval` does)."""
+    from rvt2cli.tasks import get_task
+
+    chosen = names(str(options["tasks"])) if "tasks" in options else tasks
+    which = str(options.get("variations", "all"))
+    return sum(1 for task in chosen if get_task(task).variation_choices(which))
+
+
 def share_workers(workers: int, episodes: list[int]) -> list[int]:
     """`workers` split among evaluations in proportion to their episodes (largest remainders; each at least one)."""
     exact = [workers * e / sum(episodes) for e in episodes]
@@ -303,8 +314,7 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
             runs = [(seed, name + suffix, fewer(episodes, step), *rest, step)
                     for seed in seeds for name, episodes, *rest in each for step, suffix in steps]
             folders = [out / "evals" / f"seed{seed}{name}" for seed, name, *_ in runs]
-            # an evaluation of some tasks only (options' `tasks`, as `rvt2 eval --tasks` reads it) runs their episodes alone
-            tasks_of = [len(names(str(opts["tasks"]))) if "tasks" in opts else len(experiment["tasks"]) for *_, opts, _ in runs]
+            tasks_of = [tasks_evaluated(experiment["tasks"], opts) for *_, opts, _ in runs]
             shares = share_workers(settings.workers, [episodes_left(folder, episodes * count)
                                                       for folder, (_, _, episodes, *_), count in zip(folders, runs, tasks_of)])
             for (seed, name, episodes, first_seed, extra_options, step), folder, share in zip(runs, folders, shares):

@@ -154,6 +154,19 @@ def test_phases_alongside_training_run_while_it_trains_and_the_evaluation_waits_
     assert [line.split("\t")[0] for line in (tmp_path / "failing" / "phases.tsv").read_text().splitlines()] == ["train"]
 
 
+def test_an_evaluation_of_the_held_out_variations_gets_workers_for_the_tasks_that_have_them(tmp_path):
+    """rvt2_18_onegpu_unseen: the seen variations of 18 tasks x 50 seeds beside the held-out ones, which only four
+    tasks have (`rvt2 eval --variations held-out` leaves the others out): 900 episodes against 400, so 10 and 5 of
+    15 workers, not the 18 x 100 episodes the seeds alone would say; both replay each worker's step as a CUDA graph."""
+    run = runner.commands(runner.load(runner.resolve("rvt2_18_onegpu_unseen")), runner.Settings(out=tmp_path, workers=15),
+                          ("eval",))
+    evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
+    assert [(Path(a.out).name, a.episodes, a.variations, a.workers, a.cuda_graph) for a in evals] == [
+        ("seed0", 50, "seen", 10, True), ("seed0_unseen", 100, "held-out", 5, True)]
+    assert runner.tasks_evaluated(["close_jar", "open_drawer", "stack_blocks"], {"variations": "held-out"}) == 2
+    assert runner.tasks_evaluated(["close_jar", "open_drawer"], {"tasks": "open_drawer"}) == 1
+
+
 def test_the_one_gpu_run_leaves_two_workers_to_the_training(tmp_path):
     experiment = runner.load(runner.resolve("rvt2_18_onegpu"))
     run = runner.commands(experiment, runner.Settings(out=tmp_path, workers=15))
