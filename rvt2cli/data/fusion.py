@@ -39,20 +39,27 @@ def camera_points(cam: CameraFrame) -> Cloud:
     Pixel (row, col) is sampled at its centre (col + 0.5, row + 0.5): SAPIEN's intrinsics put the
     principal point at W/2, i.e. pixel edges sit on integer coordinates.
     """
-    rows, cols = np.nonzero(cam.depth > 0)
-    z = cam.depth[rows, cols].astype(np.float64)
+    # flat indices rather than 2D ones: the same points, in the same order, in fewer and cheaper numpy passes
+    # (training reads every sample's cloud this way, and evaluation fuses two clouds a keyframe)
+    depth = cam.depth.reshape(-1)
+    pixels = np.flatnonzero(depth > 0)
+    rows, cols = np.divmod(pixels, cam.depth.shape[1])
+    z = depth[pixels].astype(np.float64)
     K = cam.intrinsic
     x = (cols + 0.5 - K[0, 2]) / K[0, 0] * z
     y = (rows + 0.5 - K[1, 2]) / K[1, 1] * z
     rotation = Rotation.from_quat(cam.cam2world[3:]).as_matrix()
     world = np.stack([x, y, z], axis=1) @ rotation.T + cam.cam2world[:3]
-    return Cloud(xyz=world.astype(np.float32), rgb=cam.rgb[rows, cols])
+    return Cloud(xyz=world.astype(np.float32), rgb=cam.rgb.reshape(-1, 3)[pixels])
 
 
 def crop(cloud: Cloud, bounds) -> Cloud:
     lo, hi = np.asarray(bounds[:3], np.float32), np.asarray(bounds[3:], np.float32)
-    keep = np.all((cloud.xyz >= lo) & (cloud.xyz <= hi), axis=1)
-    return Cloud(xyz=cloud.xyz[keep], rgb=cloud.rgb[keep])
+    xyz = cloud.xyz
+    keep = np.ones(len(xyz), dtype=bool)
+    for axis in range(3):  # column by column: no [N, 3] temporaries and no reduction over rows
+        keep &= (xyz[:, axis] >= lo[axis]) & (xyz[:, axis] <= hi[axis])
+    return Cloud(xyz=xyz[keep], rgb=cloud.rgb[keep])
 
 
 def voxel_downsample(cloud: Cloud, voxel_size: float) -> Cloud:
