@@ -101,8 +101,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         checkpoint = args.checkpoint or str(random_checkpoint(args.random, Path(tmp) / "run",
                                                               {t: list(get_task(t).scene_bounds) for t in tasks}))
-        common = dict(checkpoint=checkpoint, tasks=tasks, episodes=args.episodes, seed=args.seed, workers=args.workers, device=args.device,
-                      keyframe_budget=args.keyframe_budget)
+        common = dict(checkpoint=checkpoint, tasks=tasks, episodes=args.episodes, seed=args.seed, workers=args.workers,
+                      device=args.device, keyframe_budget=args.keyframe_budget)
         ways = {"policy_per_worker": {}, "shared_policy": {"shared_policy": True}}
         if args.device.startswith("cuda"):
             ways["cuda_graph_per_worker"] = {"cuda_graph": True}  # each worker's step replayed as a CUDA graph
@@ -120,8 +120,8 @@ def main() -> None:
     for name, count in same.items():
         print(f"episodes that ended as with a policy per worker, {name}: {count} of {len(first)}")
     result = {"benchmark": "eval_share", "machine": describe(), "checkpoint": args.checkpoint or f"random {args.random}",
-              "tasks": list(tasks), "episodes_per_task": args.episodes, "seed": args.seed, "workers": args.workers, "device": args.device,
-              "keyframe_budget": args.keyframe_budget, "runs": runs, "same_outcomes": same, "episodes": len(first)}
+              "tasks": list(tasks), "episodes_per_task": args.episodes, "seed": args.seed, "workers": args.workers,
+              "device": args.device, "keyframe_budget": args.keyframe_budget, "runs": runs, "same_outcomes": same, "episodes": len(first)}
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))
