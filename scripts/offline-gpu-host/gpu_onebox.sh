@@ -3,7 +3,7 @@
 # carried in per transfer, at most 10 minutes per command, /tmp kept between commands while the machine
 # stays up). On a GPU workstation with rvt2 installed, run `python -m benchmarks.experiment` directly.
 #
-# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (20 MiB each) + site.sha256
+# Online:  bash scripts/offline-gpu-host/pack_gpu_wheels.sh  # -> .gpu/site.part.* (sized to the tree) + site.sha256
 # Offline host, one command per line, each carrying the parts not sent yet (and .gl, the GL/Vulkan loaders);
 # K=scripts/offline-gpu-host, E=experiments/rvt2_25demos.toml:
 #   bash $K/gpu_onebox.sh stash                         # keep the carried parts in /tmp/w
@@ -102,7 +102,8 @@ while [ $# -gt 0 ]; do
       echo "no site pieces stashed in $W: using the rvt2 installed here"
     elif [ ! -f "$SITE/.unpacked" ]; then
       (cd "$W" && sha256sum -c site.sha256)
-      mkdir -p "$SITE" && cat "$W"/site.part.* | xz -d | tar -x -C "$SITE" && touch "$SITE/.unpacked"
+      # -T0: the stream's blocks (192 MiB each from xz -T2 -9) are unpacked side by side
+      mkdir -p "$SITE" && cat "$W"/site.part.* | xz -d -T0 | tar -x -C "$SITE" && touch "$SITE/.unpacked"
       export RVT2_EMBEDDINGS=$SITE/embeddings.safetensors   # for the phases after this one in this command
     fi
     if [ -d .gl ]; then  # Vulkan and GL loaders (apt-get download, carried): the image may have none

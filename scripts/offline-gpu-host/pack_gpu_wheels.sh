@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Pack what rvt2 needs on a GPU machine without network access (Python 3.12, CUDA torch, numpy 2, nothing
-# else installed) into .gpu/site.part.* (20 MiB each: the host takes 64 MiB per transfer, the 43 MB working tree
-# included), for gpu_onebox.sh. Run it from a machine with network access, in the repository.
+# else installed) into .gpu/site.part.*, for gpu_onebox.sh. Run it from a machine with network access, in the
+# repository. The host takes 64 MiB per transfer, the working tree included, so each piece is as large as the room the
+# tree leaves (less 2 MiB for the commits before the run). `pack_gpu_wheels.sh --resplit` only cuts the pieces again
+# to the tree of the day (seconds; the tree grows with every published run).
 #
 # The simulator stack (SAPIEN, ManiSkill, mplib with numpy 1.26: mplib 0.1.1 crashes with numpy 2),
 # the MCAP libraries, warp, scipy (the image's scipy wants numpy 2) and IPython (ManiSkill imports it), as
@@ -12,6 +14,32 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=${PY:-.venv/bin/python}
+
+split_site() {  # the compressed site on stdin -> .gpu/site.part.* sized to the transfer, and site.sha256
+  local tree_mib piece_mib
+  tree_mib=$(git ls-files -z --cached --others --exclude-standard | du -cb --files0-from=- 2>/dev/null |
+    awk 'END {print int($1 / 1048576) + 1}')
+  piece_mib=$(( 64 - tree_mib - 2 ))
+  if [ "$piece_mib" -lt 4 ]; then
+    echo "pack_gpu_wheels.sh: the working tree is ${tree_mib} MiB; a 64 MiB transfer has no room for a piece" >&2
+    exit 1
+  fi
+  mkdir -p .gpu
+  rm -f .gpu/site.part.*
+  split -b "${piece_mib}m" - .gpu/site.part.
+  (cd .gpu && sha256sum site.part.* > site.sha256)
+  echo "site: $(ls .gpu/site.part.* | wc -l) pieces of ${piece_mib} MiB beside the ${tree_mib} MiB working tree"
+}
+
+if [ "${1:-}" = "--resplit" ]; then
+  (cd .gpu && sha256sum --quiet -c site.sha256)
+  whole=$(mktemp)
+  trap 'rm -f "$whole"' EXIT
+  cat .gpu/site.part.* > "$whole"
+  split_site < "$whole"
+  rm -f "$whole"
+  exit 0
+fi
 WHEELS=(
   mani-skill==3.0.1 sapien==3.0.3 mplib==0.1.1 numpy==1.26.4 toppra==0.6.10 transforms3d==0.4.2 trimesh==5.2.0
   gymnasium==1.4.0 Farama-Notifications==0.0.6 dacite==1.9.2 defusedxml==0.7.1 GitPython==3.2.1 gitdb==4.0.12
@@ -42,11 +70,7 @@ mkdir "$work/site"
  rm -rf sapien/include warp/examples warp/tests zstandard/_cffi*.so
  find . -name __pycache__ -type d -exec rm -rf {} +)
 $PY scripts/embed_instructions.py --out "$work/site/embeddings.safetensors"
-mkdir -p .gpu
-rm -f .gpu/site.part.*
-tar -cf - -C "$work/site" . | xz -T2 -9 | split -b 20m - .gpu/site.part.
-(cd .gpu && sha256sum site.part.* > site.sha256)
-ls -la .gpu/site.part.*
+tar -cf - -C "$work/site" . | xz -T2 -9 | split_site
 # The Vulkan and GL loaders as Debian packages: a GPU image may have NVIDIA's driver and no loader
 # (`rvt2 doctor`: "failed to find a rendering device"); `gpu_onebox.sh setup` unpacks .gl/*.deb.
 mkdir -p .gl /tmp/rvt2-apt-lists/partial
