@@ -54,8 +54,10 @@ def test_resplit_cuts_the_same_stream_to_the_room_beside_the_tree(tmp_path):
     assert check.returncode == 0 and check.stdout.count(": OK") == len(pieces)
 
 
-def test_resplit_refuses_damaged_pieces_and_a_tree_with_no_room(tmp_path):
+def test_resplit_refuses_missing_or_damaged_pieces_and_a_tree_with_no_room(tmp_path):
     repo = _kit_repo(tmp_path, tree_mib=10)
+    r = _resplit(repo)
+    assert r.returncode == 1 and "no .gpu/site.sha256 here; pack the site first" in r.stderr
     stream = os.urandom(3 * MiB)
     _stash_pieces(repo, stream, piece_mib=1)
     with open(repo / ".gpu" / "site.part.ab", "r+b") as f:

@@ -32,6 +32,10 @@ split_site() {  # the compressed site on stdin -> .gpu/site.part.* sized to the 
 }
 
 if [ "${1:-}" = "--resplit" ]; then
+  if [ ! -f .gpu/site.sha256 ]; then
+    echo "pack_gpu_wheels.sh --resplit: no .gpu/site.sha256 here; pack the site first (pack_gpu_wheels.sh)" >&2
+    exit 1
+  fi
   (cd .gpu && sha256sum --quiet -c site.sha256)
   whole=$(mktemp)
   trap 'rm -f "$whole"' EXIT
