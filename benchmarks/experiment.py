@@ -53,6 +53,7 @@ from rvt2cli.cli.args import names
 from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import NAME as JOURNAL, read_journal
 from rvt2cli.runtime import render_threads
+from rvt2cli.tasks import get_task
 
 REPOSITORY = Path(__file__).resolve().parent.parent
 EXPERIMENTS = REPOSITORY / "experiments"
@@ -221,8 +222,6 @@ def tasks_evaluated(tasks: list[str], options: dict) -> int:
     """How many tasks an evaluation with these options runs episodes of: options' `tasks` (as `rvt2 eval --tasks`
     reads it), and of those only the tasks with a variation to spread them over (`--variations held-out` leaves
     out a task without a held-out split, as `rvt2 eval` does)."""
-    from rvt2cli.tasks import get_task
-
     chosen = names(str(options["tasks"])) if "tasks" in options else tasks
     which = str(options.get("variations", "all"))
     return sum(1 for task in chosen if get_task(task).variation_choices(which))

@@ -41,7 +41,6 @@ if [ "${1:-}" = "--resplit" ]; then
   trap 'rm -f "$whole"' EXIT
   cat .gpu/site.part.* > "$whole"
   split_site < "$whole"
-  rm -f "$whole"
   exit 0
 fi
 WHEELS=(
