@@ -11,7 +11,9 @@ other (`--run`), each phase timed into OUT/phases.tsv. The phases, in order:
               --merge-refinements` afterwards where the file asks for `merge_refinements_mm`); with
               `hold_out_variations = true`, none of a task's held-out variations (`rvt2 record --hold-out-variations`)
     heldout   demos on seeds training never sees, scored offline
-    train     one run per training seed (torchrun when --gpus > 1, the global batch kept)
+    train     one run per training seed (torchrun when --gpus > 1, the global batch kept); with --time-limit
+              each training stops there with a checkpoint (`rvt2 train --time-limit`), and the phase run again
+              (here, or on another machine with the run folder restored) resumes a run stopped so
     eval      each run closed loop on the evaluation seeds (resumed where an earlier run was interrupted):
               with `ranges = N`, N disjoint ranges of seeds, one report each (evals/seed0_from10000, ...);
               each `[eval.extra.NAME]` table is one more evaluation with its own options (evals/seed0_NAME).
@@ -39,6 +41,7 @@ The offline-GPU kit runs the same phases (`scripts/offline-gpu-host/gpu_onebox.s
 
 import argparse
 import itertools
+import json
 import os
 import shlex
 import subprocess
@@ -50,6 +53,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rvt2cli.cli.args import names
+from rvt2cli.cli.train import OUT_OF_TIME
 from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import NAME as JOURNAL, read_journal
 from rvt2cli.runtime import render_threads
@@ -95,6 +99,7 @@ class Settings:
     eval_seeds: tuple[int, int] | None = None  # (first, last): one evaluation on these seeds instead of the file's
     eval_steps: tuple[int, ...] = ()  # earlier checkpoints of each run evaluated as its last is (a success-vs-steps curve)
     curve_episodes: int | None = None  # episodes per task at those earlier checkpoints (their first seeds); None: as the last
+    time_limit: float | None = None  # minutes: each training stops there with a checkpoint, resumed when the phase runs again
 
 
 def resolve(name: str) -> Path:
@@ -243,6 +248,15 @@ def episodes_left(folder: Path, episodes: int) -> int:
     return max(1, episodes - len(read_journal(journal)[1])) if journal.exists() else episodes
 
 
+def stopped_at_time_limit(run_dir: Path) -> bool:
+    """Whether the run in `run_dir` stopped at its --time-limit, a checkpoint saved and steps left (run.json's
+    `out_of_time`; under torchrun, whose exit code is then 0, the only sign)."""
+    try:
+        return bool(json.loads((run_dir / "run.json").read_text()).get("out_of_time"))
+    except (FileNotFoundError, json.JSONDecodeError):
+        return False
+
+
 def beside_training(experiment: dict, phases) -> tuple[str, ...]:
     """The file's `alongside_training` phases where these phases train; none where they do not."""
     return tuple(experiment.get("alongside_training", [])) if "train" in phases else ()
@@ -296,11 +310,14 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
             demos(phase, "heldout", heldout.get("tasks", experiment["tasks"]), heldout["demos_per_task"],
                   heldout.get("first_seed", 30000))
         elif phase == "train":
+            limit = ["--time-limit", f"{settings.time_limit:g}"] if settings.time_limit else []
             for seed in seeds:
-                run.append((phase, launch + ["train", "--data", str(out / "demos"), "--out", str(out / "runs" / f"seed{seed}"),
+                run_dir = out / "runs" / f"seed{seed}"
+                resume = ["--resume"] if stopped_at_time_limit(run_dir) else []
+                run.append((phase, launch + ["train", "--data", str(out / "demos"), "--out", str(run_dir),
                                              "--config", train.get("config", "rvt2"), "--seed", str(seed),
                                              "--steps", str(settings.steps or train["steps"]), "--batch-size", str(batch // settings.gpus)]
-                            + options(train.get("options", {})) + ["--no-progress"]))
+                            + options(train.get("options", {})) + limit + resume + ["--no-progress"]))
         elif phase == "eval":
             each = evaluations(evaluate, settings.evaluations, named_by_seed=settings.eval_seeds is not None)
 
@@ -404,6 +421,14 @@ def run_phase(phase: str, argvs: list[list[str]], out: Path, env: dict[str, str]
                     process.wait()
                 return 2
         failed = [(argv, code) for argv, process in processes if (code := process.wait())]
+        if phase == "train" and all(code == OUT_OF_TIME for _, code in failed) and \
+                any("--out" in argv and stopped_at_time_limit(Path(argv[argv.index("--out") + 1])) for argv in batch):
+            print(f"experiment: the training stopped at its --time-limit with a checkpoint ({shlex.join(batch[0])}); "
+                  "run the train phase again to resume it, here or on another machine with its run folder restored",
+                  file=sys.stderr)
+            with open(out / "phases.tsv", "a") as f:
+                f.write(f"train_stopped\t{time.monotonic() - started:.0f}\n")
+            return OUT_OF_TIME
         if failed:  # the others ran to their end: an interrupted evaluation resumes from its journal
             argv, code = failed[0]
             print(f"experiment: {phase} failed (exit code {code}): {shlex.join(argv)}", file=sys.stderr)
@@ -448,6 +473,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--curve-episodes", type=int, metavar="N", help="with --eval-steps: evaluate the earlier "
                         "checkpoints on the first N seeds of each task only (the last one on all), so that a curve "
                         "fits the machine's time")
+    parser.add_argument("--time-limit", type=float, metavar="MINUTES",
+                        help="each training saves a checkpoint and stops after this many minutes (a machine's time; "
+                             "exit code 75); the train phase run again resumes it")
     parser.add_argument("--renderer", choices=RENDERERS, help="every phase renders with this Vulkan driver instead of "
                         "the file's (e.g. nvidia where the file's lavapipe would take too long; demos and evaluations "
                         "still share it, and the default folder gains _RENDERER)")
@@ -479,6 +507,8 @@ def main(argv: list[str] | None = None) -> int:
             raise UserError(f"--eval-steps {args.eval_steps}: give whole numbers, comma-separated, e.g. 2000,4000") from None
         if args.curve_episodes is not None and (args.curve_episodes < 1 or not eval_steps):
             raise UserError(f"--curve-episodes {args.curve_episodes}: give a whole number of at least 1, with --eval-steps")
+        if args.time_limit is not None and not args.time_limit > 0:
+            raise UserError(f"--time-limit {args.time_limit:g}: give the minutes a training may take, more than 0")
         if args.renderer and args.renderer != experiment.get("renderer", "auto"):
             experiment = {**experiment, "renderer": args.renderer, "name": f"{experiment['name']}_{args.renderer}"}
         name = experiment["name"] + (f"_{args.steps}steps" if args.steps else "")
@@ -486,7 +516,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = Settings(out=out, rvt2=tuple(shlex.split(args.rvt2)), torchrun=tuple(shlex.split(args.torchrun)),
                             workers=args.workers, gpus=args.gpus,
                             device=args.device, training_seeds=seeds, steps=args.steps, eval_seeds=eval_seeds,
-                            eval_steps=eval_steps, curve_episodes=args.curve_episodes,
+                            eval_steps=eval_steps, curve_episodes=args.curve_episodes, time_limit=args.time_limit,
                             evaluations=tuple(n for n in args.evaluations.split(",") if n) if args.evaluations else None)
         phases = parse_phases(args.phase)
         run = commands(experiment, settings, phases)

@@ -360,6 +360,37 @@ def test_run_executes_a_phase_and_times_it(tmp_path, capsys, monkeypatch):
     assert capsys.readouterr().out.startswith("export RVT2_VULKAN=lavapipe\n# oracle\n")
 
 
+def test_a_training_stopped_at_its_time_limit_resumes_when_the_phase_runs_again(tiny_dataset, tmp_path, capsys):
+    """--time-limit on the real `rvt2 train`: the phase stops with exit code 75 and one line saying how to go on,
+    is timed as train_stopped, and no later phase runs; run again without the limit, the same command gains
+    --resume and the run ends at its last step."""
+    import shutil
+
+    path = tmp_path / "tiny.toml"
+    path.write_text("name = 'tiny'\ntasks = ['stack_cube']\n[record]\ndemos_per_task = 2\n"
+                    "[train]\nconfig = 'small'\nsteps = 4\nbatch_size = 8\n"
+                    "options = { log-every = 2, val-episodes = 0, max-points = 20000, no-augment = true }\n"
+                    "[eval]\nepisodes_per_task = 1\n")
+    out = tmp_path / "out"
+    shutil.copytree(tiny_dataset, out / "demos")
+    given = [str(path), "--out", str(out), "--rvt2", f"{sys.executable} -m rvt2cli"]
+    assert runner.main([*given, "--run", "--phase", "train,eval", "--time-limit", "1e-9"]) == 75
+    err = capsys.readouterr().err
+    assert "stopped at its --time-limit" in err and "run the train phase again" in err and "Traceback" not in err
+    assert [line.split("\t")[0] for line in (out / "phases.tsv").read_text().splitlines()] == ["train_stopped"]
+    assert not (out / "evals").exists()
+    run = json.loads((out / "runs" / "seed0" / "run.json").read_text())
+    assert run["out_of_time"] is True and run["steps"] == 2
+    assert runner.main([*given, "--phase", "train"]) == 0   # printed
+    assert "--resume --no-progress" in capsys.readouterr().out
+    assert runner.main([*given, "--run", "--phase", "train"]) == 0
+    run = json.loads((out / "runs" / "seed0" / "run.json").read_text())
+    assert run["out_of_time"] is False and run["steps"] == 4
+    assert [line.split("\t")[0] for line in (out / "phases.tsv").read_text().splitlines()] == ["train_stopped", "train"]
+    assert runner.main([*given, "--run", "--time-limit", "0"]) == 2
+    assert capsys.readouterr().err.strip().endswith("--time-limit 0: give the minutes a training may take, more than 0")
+
+
 def test_success_against_training_time_from_published_runs(tmp_path):
     """benchmarks.success_curve reads experiment folders as published (gzip or xz journals, train/): one point per
     evaluated checkpoint, the training's minutes to it from run.json and train.csv, a chart and the points."""
