@@ -41,7 +41,6 @@ The offline-GPU kit runs the same phases (`scripts/offline-gpu-host/gpu_onebox.s
 
 import argparse
 import itertools
-import json
 import os
 import shlex
 import subprocess
@@ -248,15 +247,6 @@ def episodes_left(folder: Path, episodes: int) -> int:
     return max(1, episodes - len(read_journal(journal)[1])) if journal.exists() else episodes
 
 
-def stopped_at_time_limit(run_dir: Path) -> bool:
-    """Whether the run in `run_dir` stopped at its --time-limit, a checkpoint saved and steps left (run.json's
-    `out_of_time`; under torchrun, whose exit code is then 0, the only sign)."""
-    try:
-        return bool(json.loads((run_dir / "run.json").read_text()).get("out_of_time"))
-    except (FileNotFoundError, json.JSONDecodeError):
-        return False
-
-
 def beside_training(experiment: dict, phases) -> tuple[str, ...]:
     """The file's `alongside_training` phases where these phases train; none where they do not."""
     return tuple(experiment.get("alongside_training", [])) if "train" in phases else ()
@@ -310,6 +300,8 @@ def commands(experiment: dict, settings: Settings, phases=PHASES) -> list[tuple[
             demos(phase, "heldout", heldout.get("tasks", experiment["tasks"]), heldout["demos_per_task"],
                   heldout.get("first_seed", 30000))
         elif phase == "train":
+            from rvt2cli.train.run_folder import stopped_at_time_limit
+
             limit = ["--time-limit", f"{settings.time_limit:g}"] if settings.time_limit else []
             for seed in seeds:
                 run_dir = out / "runs" / f"seed{seed}"
@@ -421,8 +413,7 @@ def run_phase(phase: str, argvs: list[list[str]], out: Path, env: dict[str, str]
                     process.wait()
                 return 2
         failed = [(argv, code) for argv, process in processes if (code := process.wait())]
-        if phase == "train" and all(code == OUT_OF_TIME for _, code in failed) and \
-                any("--out" in argv and stopped_at_time_limit(Path(argv[argv.index("--out") + 1])) for argv in batch):
+        if phase == "train" and all(code == OUT_OF_TIME for _, code in failed) and stopped(batch):
             print(f"experiment: the training stopped at its --time-limit with a checkpoint ({shlex.join(batch[0])}); "
                   "run the train phase again to resume it, here or on another machine with its run folder restored",
                   file=sys.stderr)
@@ -436,6 +427,13 @@ def run_phase(phase: str, argvs: list[list[str]], out: Path, env: dict[str, str]
     with open(out / "phases.tsv", "a") as f:
         f.write(f"{phase}\t{time.monotonic() - started:.0f}\n")
     return 0
+
+
+def stopped(train_commands: list[list[str]]) -> bool:
+    """Whether one of these `rvt2 train` commands stopped at its --time-limit (its --out's run.json says so)."""
+    from rvt2cli.train.run_folder import stopped_at_time_limit
+
+    return any("--out" in argv and stopped_at_time_limit(Path(argv[argv.index("--out") + 1])) for argv in train_commands)
 
 
 def parse_phases(text: str) -> tuple[str, ...]:

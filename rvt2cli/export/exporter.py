@@ -105,13 +105,12 @@ def _parity_inputs(ckpt, cfg, max_points: int, check_data, limit: int = 4) -> li
     as exported-policy inputs; a synthetic cloud when there are none."""
     from rvt2cli.data.paths import episode_paths
     from rvt2cli.model.language import InstructionCache
+    from rvt2cli.train.run_folder import read_run_json
     from rvt2cli.train.samples import load_samples
 
     paths = episode_paths(list(check_data)) if check_data else []
     if not paths:
-        run_json = ckpt.path.parent.parent / "run.json"
-        if run_json.exists():
-            paths = [Path(p) for p in json.loads(run_json.read_text()).get("episodes", []) if Path(p).exists()]
+        paths = [Path(p) for p in read_run_json(ckpt.path.parent.parent).get("episodes", []) if Path(p).exists()]
     if not paths:
         warnings.warn("no recorded observations for the parity check (give --check-data); checking on a synthetic cloud")
         return [example_inputs(cfg, max_points)]

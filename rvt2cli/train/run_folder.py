@@ -151,10 +151,25 @@ class RunLog:
         self.tb.close()
 
 
-def write_run_json(run_dir: Path, update: dict) -> None:
+def read_run_json(run_dir: Path) -> dict:
+    """What the run has written to run.json so far ({} before its first write)."""
     path = run_dir / "run.json"
-    content = json.loads(path.read_text()) if path.exists() else {}
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def stopped_at_time_limit(run_dir: Path) -> bool:
+    """Whether the run stopped at its --time-limit, a checkpoint saved and steps left (run.json's `out_of_time`;
+    under torchrun, whose exit code is then 0, the only sign). False for an unreadable run.json."""
+    try:
+        return bool(read_run_json(run_dir).get("out_of_time"))
+    except json.JSONDecodeError:
+        return False
+
+
+def write_run_json(run_dir: Path, update: dict) -> None:
+    content = read_run_json(run_dir)
     content.update(update)
+    path = run_dir / "run.json"
     with atomic_open(path, "w") as f:
         json.dump(content, f, indent=2)
 
