@@ -1,8 +1,8 @@
 """experiments/*.toml through benchmarks/experiment.py: every command an experiment file turns into is
 one the real `rvt2` parsers accept, so a renamed or removed option fails here, not on a GPU machine."""
 
-import gzip
 import json
+import lzma
 import sys
 from pathlib import Path
 
@@ -95,8 +95,8 @@ def test_an_interrupted_evaluation_resumes_with_workers_for_the_episodes_it_has_
     533 : 900 : 900 : 400 episodes."""
     journal = tmp_path / "evals" / "seed0_from10000" / "episodes.jsonl"
     journal.parent.mkdir(parents=True)
-    published = runner.REPOSITORY / "benchmarks/results/rvt2_18_h100x4/evals/seed0_from10000/episodes.jsonl.gz"
-    journal.write_text("".join(gzip.decompress(published.read_bytes()).decode().splitlines(keepends=True)[:1 + 367]))
+    published = runner.REPOSITORY / "benchmarks/results/rvt2_18_h100x4/evals/seed0_from10000/episodes.jsonl.xz"
+    journal.write_text("".join(lzma.decompress(published.read_bytes()).decode().splitlines(keepends=True)[:1 + 367]))
     run = runner.commands(runner.load(runner.resolve("rvt2_18")), runner.Settings(out=tmp_path, workers=60))
     evals = [build_parser().parse_args(rvt2_arguments(argv)) for phase, argv in run if phase == "eval"]
     assert [(Path(a.out).name, a.workers, a.resume) for a in evals] == [
@@ -392,7 +392,7 @@ def test_a_training_stopped_at_its_time_limit_resumes_when_the_phase_runs_again(
 
 
 def test_success_against_training_time_from_published_runs(tmp_path):
-    """benchmarks.success_curve reads experiment folders as published (gzip or xz journals, train/): one point per
+    """benchmarks.success_curve reads experiment folders as published (xz journals, train/): one point per
     evaluated checkpoint, the training's minutes to it from run.json and train.csv, a chart and the points."""
     from benchmarks import success_curve
 
@@ -404,7 +404,7 @@ def test_success_against_training_time_from_published_runs(tmp_path):
     via = json.loads(points.read_text())["via"]
     assert [(p["step"], p["successes"], p["episodes"]) for p in via] == [(2000, 626, 900), (3000, 701, 900)]
     for p, folder in zip(via, (two, three)):
-        run = json.loads(gzip.decompress((folder / "train/run.json.gz").read_bytes()))
+        run = json.loads(lzma.decompress((folder / "train/run.json.xz").read_bytes()))
         assert abs(p["train_minutes"] - run["seconds"] / 60) < 1e-9   # the last checkpoint: the whole training
     assert via[0]["ci95"][0] < via[0]["rate"] < via[0]["ci95"][1] and chart.read_bytes()[:4] == b"\x89PNG"
     # a curve of one training, its journals kept as xz: the earlier checkpoints on fewer seeds, each one's minutes
@@ -414,7 +414,7 @@ def test_success_against_training_time_from_published_runs(tmp_path):
     points_of_curve = json.loads(points.read_text())["curve"]
     assert [(p["step"], p["episodes"]) for p in points_of_curve] == [(1500, 450), (3000, 450), (4500, 450), (6000, 900)]
     minutes = [p["train_minutes"] for p in points_of_curve]
-    assert minutes == sorted(minutes) and abs(minutes[-1] - json.loads(gzip.decompress((curve / "train/run.json.gz").read_bytes()))["seconds"] / 60) < 1e-9
+    assert minutes == sorted(minutes) and abs(minutes[-1] - json.loads(lzma.decompress((curve / "train/run.json.xz").read_bytes()))["seconds"] / 60) < 1e-9
     with pytest.raises(SystemExit, match="LABEL=DIR"):
         success_curve.main(["--model", str(two)])
     # the reported seeds' two ranges pooled into one point per checkpoint, or one range alone

@@ -85,19 +85,37 @@ def test_a_stopped_training_crosses_in_pieces_and_goes_on_there_as_if_never_stop
     from rvt2cli.train.trainer import TrainOptions, train
 
     script = Path(__file__).parent.parent / "scripts" / "offline-gpu-host" / "gpu_checkpoint.py"
+    sys.path.insert(0, str(script.parent))
+    from gpu_checkpoint import all_pieces
     opts = dict(data=[str(tiny_dataset)], steps=6, save_every=6, log_every=3, **TINY_TRAIN)
     straight = train(TrainOptions(out=str(tmp_path / "a"), **opts), say=lambda *_: None)
     stopped = train(TrainOptions(out=str(tmp_path / "b"), time_limit=1e-9, **opts), say=lambda *_: None)
     pieces, elsewhere = tmp_path / "pieces", tmp_path / "elsewhere"
-    for command in (["shrink", str(tmp_path / "b"), str(pieces), "--resumable"], ["restore", str(pieces), str(elsewhere)]):
+    # on the way out again the pieces are cut to the room a transfer leaves (resplit): the same bytes arrive
+    for command in (["shrink", str(tmp_path / "b"), str(pieces), "--resumable"], ["resplit", str(pieces), "--piece-mib", "0.25"],
+                    ["restore", str(pieces), str(elsewhere)]):
         r = subprocess.run([sys.executable, str(script), *command], capture_output=True, text=True, timeout=300)
         assert r.returncode == 0, r.stderr[-2000:]
+        if command[0] == "shrink":
+            sent = json.loads((pieces / "manifest.json").read_text())
+        if command[0] == "resplit":
+            cut = json.loads((pieces / "manifest.json").read_text())
+            assert len(cut["pieces"]) > len(sent["pieces"]) and cut["sha256"] == sent["sha256"]
+            assert cut["state"]["sha256"] == sent["state"]["sha256"] and (pieces / "config.json").is_file()
+            assert max(f.stat().st_size for f in pieces.glob("*.part*")) <= 2**18
+            assert sorted(f.name for f in pieces.glob("*.part*")) == sorted(all_pieces(cut))
     assert "--resume" in r.stdout
     resumed = train(TrainOptions(out=str(elsewhere), resume=True, **opts), say=lambda *_: None)
     assert stopped.steps == 3 and stopped.losses + resumed.losses == straight.losses
     a, c = load_checkpoint(tmp_path / "a").weights, load_checkpoint(elsewhere).weights
     assert all(torch.equal(a[k], c[k]) for k in a)
     assert [line.split(",")[0] for line in (elsewhere / "train.csv").read_text().splitlines()] == ["step", "3", "6"]
+
+    with open(pieces / cut["state"]["pieces"][0], "r+b") as f:  # a damaged piece: one line, nothing cut
+        f.write(b"\0")
+    r = subprocess.run([sys.executable, str(script), "resplit", str(pieces), "--piece-mib", "1"], capture_output=True, text=True)
+    assert r.returncode == 1 and "sha256 differs" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert json.loads((pieces / "manifest.json").read_text()) == cut
 
     exact = tmp_path / "exact"
     for command in (["shrink", str(tmp_path / "b"), str(exact), "--exact"], ["restore", str(exact), str(tmp_path / "for_eval")],

@@ -11,7 +11,7 @@ from rvt2cli.errors import UserError
 from rvt2cli.eval.journal import read_journal
 
 RESULTS = REPOSITORY / "benchmarks" / "results"
-ORACLE = RESULTS / "rlbench18_oracle_50" / "episodes.jsonl.gz"
+ORACLE = RESULTS / "rlbench18_oracle_50" / "episodes.jsonl.xz"
 POLICY = RESULTS / "rvt2_18_via_h200x4" / "evals" / "seed0_from10000" / "episodes.jsonl.xz"
 
 

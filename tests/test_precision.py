@@ -174,7 +174,7 @@ def test_a_policy_that_repeats_the_pose_it_reached_has_stalled():
     """rvt2-18's stack_cups seed 10007 (the published evaluation): the second cup set down 7 cm from the
     base, then 14 keyframes where the arm already was until the keyframe budget ran out: `stalled`. The same
     record whose last keyframes kept moving 2 cm each, or closed and opened the gripper, spent its budget otherwise."""
-    journal = RESULTS / "stage2_min_points_h200x2" / "eval_all18_min200" / "episodes.jsonl.gz"
+    journal = RESULTS / "stage2_min_points_h200x2" / "eval_all18_min200" / "episodes.jsonl.xz"
     record = next(r for r in read_journal(journal)[1] if r["task"] == "stack_cups" and r["seed"] == 10007)
     assert record["failure"] == "budget_exhausted" and len(record["steps"]) == 25
     assert failure_reason(record, insertion=False) == "stalled"

@@ -2,9 +2,8 @@
 (benchmarks/paper_rlbench18.toml) against rvt2-18's task set, and a table with it built from a real
 evaluation journal (the rvt2-18 oracle's 900 episodes, published in benchmarks/results/)."""
 
-import gzip
-import lzma
 import json
+import lzma
 import tomllib
 
 import pytest
@@ -28,7 +27,7 @@ def test_the_paper_column_names_every_rvt2_18_task_and_keeps_its_average(model):
 
 
 def test_a_table_beside_the_paper_from_a_real_journal():
-    lines = gzip.open(ORACLE / "episodes.jsonl.gz", "rt").read().splitlines()[1:]
+    lines = lzma.open(ORACLE / "episodes.jsonl.xz", "rt").read().splitlines()[1:]
     # the oracle's episodes, read as a policy's: the table code cannot tell them apart
     records = [{**record, "source": "policy"} for record in map(json.loads, lines) if record.get("source") == "oracle"]
     report = build_report(records, {"seed": 10000, "episodes_per_task": 50})
@@ -52,13 +51,13 @@ def test_an_unknown_model_is_one_line():
 
 
 def test_two_published_ranges_are_one_evaluation_of_100_seeds_per_task():
-    """rvt2-18's two ranges of 50 seeds, read from the gzip journals kept in benchmarks/results (no eval.json
+    """rvt2-18's two ranges of 50 seeds, read from the xz journals kept in benchmarks/results (no eval.json
     there), joined with + into one report whose counts are the journals' own."""
     evals = REPOSITORY / "benchmarks" / "results" / "rvt2_18_h100x4" / "evals"
     ranges = [evals / "seed0_from10000", evals / "seed0_from10050"]
     [report] = results_table.load_models("+".join(map(str, ranges)))
     records = [json.loads(line) for folder in ranges
-               for line in gzip.open(folder / "episodes.jsonl.gz", "rt").read().splitlines()[1:]]
+               for line in lzma.open(folder / "episodes.jsonl.xz", "rt").read().splitlines()[1:]]
     assert report["seed"] == 10000 and report["episodes_per_task"] == 100
     for task in tasks_of_set("rlbench18"):
         mine = [r for r in records if r["task"] == task]
@@ -70,7 +69,7 @@ def test_a_range_of_an_evaluations_seeds_is_read_as_that_range_alone():
     """EVAL_DIR@FIRST-LAST: the second 50 seeds of a 100-seed evaluation, counted as the journal has them."""
     folder = REPOSITORY / "benchmarks" / "results" / "stage2_min_points_h200x2" / "eval_all18_min200"
     [second] = results_table.load_models(f"{folder}@10050-10099")
-    records = [json.loads(line) for line in gzip.open(folder / "episodes.jsonl.gz", "rt").read().splitlines()[1:]]
+    records = [json.loads(line) for line in lzma.open(folder / "episodes.jsonl.xz", "rt").read().splitlines()[1:]]
     assert second["seed"] == 10050 and second["episodes_per_task"] == 50
     for task in tasks_of_set("rlbench18"):
         mine = [r for r in records if r["task"] == task and r["seed"] >= 10050]
@@ -107,7 +106,7 @@ def test_the_first_phrasing_and_the_others_split_an_evaluation():
     #others the rest. On the published rvt2-18 evaluation the two add up to it, task by task."""
     folder = REPOSITORY / "benchmarks" / "results" / "stage2_min_points_h200x2" / "eval_all18_min200"
     [first], [others], [whole] = (results_table.load_models(f"{folder}{suffix}") for suffix in ("#first", "#others", ""))
-    records = [json.loads(line) for line in gzip.open(folder / "episodes.jsonl.gz", "rt").read().splitlines()[1:]]
+    records = [json.loads(line) for line in lzma.open(folder / "episodes.jsonl.xz", "rt").read().splitlines()[1:]]
     for task in tasks_of_set("rlbench18"):
         a, b, c = (r["tasks"][task]["policy"] for r in (first, others, whole))
         assert a["episodes"] + b["episodes"] == c["episodes"] == 100

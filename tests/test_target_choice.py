@@ -12,7 +12,7 @@ from rvt2cli.record.scene import make_env
 from rvt2cli.tasks import get_task
 
 pytestmark = pytest.mark.sim
-ORACLE = REPOSITORY / "benchmarks" / "results" / "rvt2_18_h100x4" / "oracle" / "episodes.jsonl.gz"
+ORACLE = REPOSITORY / "benchmarks" / "results" / "rvt2_18_h100x4" / "oracle" / "episodes.jsonl.xz"
 
 
 def test_the_oracle_pushes_towards_the_named_target_every_time():

@@ -107,7 +107,7 @@ def _stage2_view(p):
 
 
 def _insertion_stops(p):
-    p.add_argument("journal", metavar="JOURNAL", help="a policy's evaluation journal (episodes.jsonl or .gz)")
+    p.add_argument("journal", metavar="JOURNAL", help="a policy's evaluation journal (episodes.jsonl, .gz or .xz)")
     p.add_argument("--task", choices=("insert_peg", "plug_charger"), default="insert_peg", help="default insert_peg")
     p.add_argument("--searched", metavar="EVAL_DIR",
                    help="an `rvt2 eval --out` folder of the same episodes with the search (a --replay of the journal)")

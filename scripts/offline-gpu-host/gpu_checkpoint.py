@@ -10,6 +10,11 @@ and on the machine that receives them, once every piece has come back into one f
 
     python scripts/offline-gpu-host/gpu_checkpoint.py restore PIECES_DIR RUN_DIR  # a run folder that rvt2 eval/export/render read
 
+Pieces come back at 15 MiB (a returned file's limit), but go out to a GPU machine one per transfer beside the
+working tree; before carrying them there, cut them to the room the tree leaves (the site pieces' rule):
+
+    python scripts/offline-gpu-host/gpu_checkpoint.py resplit PIECES_DIR          # fewer transfers, the same bytes
+
 The weights travel as float16 (half the size) and are restored to float32; config.json records this.
 Training ran under bf16 autocast, so every matrix product already used weights rounded to 8 significant
 bits; float16 keeps 11. With --exact they travel as trained: an evaluation resumed on another machine
@@ -24,6 +29,7 @@ import hashlib
 import io
 import json
 import shutil
+import subprocess
 import sys
 import tarfile
 from pathlib import Path
@@ -39,12 +45,12 @@ PIECE = 15 * 2**20
 RUN_LOGS = ("run.json", "train.csv", "validation.csv")   # what a resumed run reads back from its folder
 
 
-def _split(blob: bytes, stem: str, out: Path) -> list[str]:
-    """`blob` as files STEM.partNNN of at most PIECE bytes in `out`; their names, in order."""
+def _split(blob: bytes, stem: str, out: Path, piece: int = PIECE) -> list[str]:
+    """`blob` as files STEM.partNNN of at most `piece` bytes in `out`; their names, in order."""
     names = []
-    for i in range(0, len(blob), PIECE):
-        names.append(f"{stem}.part{i // PIECE:03d}")
-        (out / names[-1]).write_bytes(blob[i:i + PIECE])
+    for i in range(0, len(blob), piece):
+        names.append(f"{stem}.part{i // piece:03d}")
+        (out / names[-1]).write_bytes(blob[i:i + piece])
     return names
 
 
@@ -58,8 +64,8 @@ def _join(pieces_dir: Path, names: list[str], sha256: str, what: str) -> bytes:
     return blob
 
 
-def _pieces(blob: bytes, stem: str, out: Path) -> dict:
-    return {"pieces": _split(blob, stem, out), "sha256": hashlib.sha256(blob).hexdigest()}
+def _pieces(blob: bytes, stem: str, out: Path, piece: int = PIECE) -> dict:
+    return {"pieces": _split(blob, stem, out, piece), "sha256": hashlib.sha256(blob).hexdigest()}
 
 
 def _run_logs(run: Path) -> bytes:
@@ -109,8 +115,53 @@ def all_pieces(manifest: dict) -> list[str]:
             + [p for part in ("state", "run_logs") if part in manifest for p in manifest[part]["pieces"]])
 
 
+def _manifest(pieces_dir: Path) -> dict:
+    if not (pieces_dir / "manifest.json").is_file():
+        hint = "`tar -xf meta.tar` there first" if (pieces_dir / "meta.tar").is_file() else \
+            "give the folder the pieces came back into (gpu_onebox.sh weights)"
+        sys.exit(f"{pieces_dir}: no manifest.json; {hint}")
+    return json.loads((pieces_dir / "manifest.json").read_text())
+
+
+def carry_room_mib() -> int:
+    """MiB a piece may have to travel beside today's working tree: pack_gpu_wheels.sh owns the rule."""
+    r = subprocess.run(["bash", str(Path(__file__).with_name("pack_gpu_wheels.sh")), "--room"],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        sys.exit(r.stderr.strip() or f"pack_gpu_wheels.sh --room failed ({r.returncode})")
+    return int(r.stdout)
+
+
+def resplit(pieces_dir: Path, piece_mib: float | None = None) -> None:
+    """Cut every part of a pieces folder again, `piece_mib` MiB a piece (default: the room beside the tree):
+    each part is checked against its sha256 first, and the folder is replaced only once the new one is whole."""
+    manifest = _manifest(pieces_dir)
+    piece = int((piece_mib if piece_mib is not None else carry_room_mib()) * 2**20)
+    if piece < 1:
+        sys.exit(f"--piece-mib {piece_mib}: a piece must hold at least one byte")
+    parts = [("weights", "pieces", "sha256", "weights"),
+             ("instructions", "instruction_pieces", "instructions_sha256", "instruction embeddings")]
+    blobs = {stem: _join(pieces_dir, manifest[key], manifest[sha], what) for stem, key, sha, what in parts if key in manifest}
+    for stem, what in (("state", "training state"), ("run_logs", "run's logs")):
+        if stem in manifest:
+            blobs[stem] = _join(pieces_dir, manifest[stem]["pieces"], manifest[stem]["sha256"], what)
+    old = set(all_pieces(manifest))
+    with atomic_folder(pieces_dir, replace=True) as new:
+        for f in pieces_dir.iterdir():  # config.json and anything else of the user's; meta.tar held the old manifest
+            if f.is_file() and f.name not in old and f.name not in ("manifest.json", "meta.tar"):
+                shutil.copy2(f, new / f.name)
+        for stem, key, _, _ in parts:
+            if stem in blobs:
+                manifest[key] = _split(blobs[stem], stem, new, piece)
+        for stem in ("state", "run_logs"):
+            if stem in blobs:
+                manifest[stem] = _pieces(blobs[stem], stem, new, piece)
+        (new / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    print(f"{pieces_dir}: {len(old)} pieces cut again into {len(all_pieces(manifest))} of at most {piece / 2**20:g} MiB")
+
+
 def restore(pieces_dir: Path, run: Path) -> None:
-    manifest = json.loads((pieces_dir / "manifest.json").read_text())
+    manifest = _manifest(pieces_dir)
     blob = _join(pieces_dir, manifest["pieces"], manifest["sha256"], "weights")
     if "instruction_pieces" in manifest:
         instructions = _join(pieces_dir, manifest["instruction_pieces"], manifest["instructions_sha256"],
@@ -152,9 +203,14 @@ def main() -> None:
     r = sub.add_parser("restore")
     r.add_argument("pieces", type=Path)
     r.add_argument("run", type=Path)
+    c = sub.add_parser("resplit", help="cut a pieces folder again, to the room a transfer leaves beside the tree")
+    c.add_argument("pieces", type=Path)
+    c.add_argument("--piece-mib", type=float, help="MiB a piece (default: the room beside the working tree)")
     args = parser.parse_args()
     if args.command == "shrink":
         shrink(args.run, args.out, args.exact, args.resumable)
+    elif args.command == "resplit":
+        resplit(args.pieces, args.piece_mib)
     else:
         restore(args.pieces, args.run)
 

@@ -245,8 +245,8 @@ PY
     ;;
   evalprofile)  # where an evaluation episode's core-seconds go: rvt2-18's recorded predictions replayed, one process
     t=$(clock)
-    python3 -m benchmarks.eval_bench benchmarks/results/rvt2_18/eval_partial/episodes.jsonl.gz \
-      benchmarks/results/rvt2_18/cpu_preview/episodes.jsonl.gz --episodes "${PROFILE_EPISODES:-1}" \
+    python3 -m benchmarks.eval_bench benchmarks/results/rvt2_18/eval_partial/episodes.jsonl.xz \
+      benchmarks/results/rvt2_18/cpu_preview/episodes.jsonl.xz --episodes "${PROFILE_EPISODES:-1}" \
       --json "$W/eval_profile.json" 2>&1 | tail -34
     phase evalprofile $(( $(clock) - t ))
     ;;

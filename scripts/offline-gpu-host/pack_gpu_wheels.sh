@@ -3,7 +3,7 @@
 # else installed) into .gpu/site.part.*, for gpu_onebox.sh. Run it from a machine with network access, in the
 # repository. The host takes 64 MiB per transfer, the working tree included, so each piece is as large as the room the
 # tree leaves (less 2 MiB for the commits before the run). `pack_gpu_wheels.sh --resplit` only cuts the pieces again
-# to the tree of the day (seconds; the tree grows with every published run).
+# to the tree of the day (seconds; the tree grows with every published run); `--room` prints that size in MiB.
 #
 # The simulator stack (SAPIEN, ManiSkill, mplib with numpy 1.26: mplib 0.1.1 crashes with numpy 2),
 # the MCAP libraries, warp, scipy (the image's scipy wants numpy 2) and IPython (ManiSkill imports it), as
@@ -15,8 +15,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=${PY:-.venv/bin/python}
 
-split_site() {  # the compressed site on stdin -> .gpu/site.part.* sized to the transfer, and site.sha256
-  local tree_mib piece_mib
+room() {  # tree_mib and piece_mib: the MiB a piece may have beside today's working tree (weight pieces too)
   tree_mib=$(git ls-files -z --cached --others --exclude-standard | du -cb --files0-from=- 2>/dev/null |
     awk 'END {print int($1 / 1048576) + 1}')
   piece_mib=$(( 64 - tree_mib - 2 ))
@@ -24,6 +23,10 @@ split_site() {  # the compressed site on stdin -> .gpu/site.part.* sized to the 
     echo "pack_gpu_wheels.sh: the working tree is ${tree_mib} MiB; a 64 MiB transfer has no room for a piece" >&2
     exit 1
   fi
+}
+
+split_site() {  # the compressed site on stdin -> .gpu/site.part.* sized to the transfer, and site.sha256
+  room
   mkdir -p .gpu
   rm -f .gpu/site.part.*
   split -b "${piece_mib}m" - .gpu/site.part.
@@ -31,6 +34,11 @@ split_site() {  # the compressed site on stdin -> .gpu/site.part.* sized to the 
   echo "site: $(ls .gpu/site.part.* | wc -l) pieces of ${piece_mib} MiB beside the ${tree_mib} MiB working tree"
 }
 
+if [ "${1:-}" = "--room" ]; then  # for gpu_checkpoint.py resplit
+  room
+  echo "$piece_mib"
+  exit 0
+fi
 if [ "${1:-}" = "--resplit" ]; then
   if [ ! -f .gpu/site.sha256 ]; then
     echo "pack_gpu_wheels.sh --resplit: no .gpu/site.sha256 here; pack the site first (pack_gpu_wheels.sh)" >&2
