@@ -25,6 +25,11 @@ def test_the_oracle_as_a_policy_reaches_each_of_its_keyframes(tmp_path):
     for row in report["rows"]:
         for part in (row["successes"], row["failures"]):
             assert part["median_mm"] in (None, 0.0) and part["within_near"] == part["episodes"]
+            assert part["ahead_median_mm"] in (None, 0.0)
+    # the stick's landing (keyframe 4: lift, over the cube, down, drag) carries a held tool; the grasp does not
+    landing = next(r for r in report["rows"] if r["task"] == "reach_and_drag" and r["keyframe"] == 4)
+    grasp = next(r for r in report["rows"] if r["task"] == "reach_and_drag" and r["keyframe"] == 1)
+    assert landing["successes"]["ahead_median_mm"] == 0.0 and grasp["successes"]["ahead_median_mm"] is None
 
 
 def test_each_task_and_keyframe_of_a_published_evaluation_is_counted_by_outcome():
@@ -39,6 +44,9 @@ def test_each_task_and_keyframe_of_a_published_evaluation_is_counted_by_outcome(
     assert all(0 <= r["failures"]["within_near"] <= r["failures"]["episodes"] for r in report["rows"])
     table = oracle_gap.markdown(report)
     assert table.count("\n| reach_and_drag |") == sum(r["task"] == "reach_and_drag" for r in report["rows"])
+    # the failed drags bring the stick down ahead of the expert's landing, onto the cube; the successes do not
+    landing = next(r for r in report["rows"] if r["task"] == "reach_and_drag" and r["keyframe"] == 4)
+    assert landing["failures"]["ahead_median_mm"] > 20 > 10 > landing["successes"]["ahead_median_mm"]
 
 
 def test_journals_of_other_seeds_are_refused_in_one_line():

@@ -90,6 +90,14 @@ def weights(text: str) -> dict[str, float]:
     return out
 
 
+def task_expert(text: str) -> tuple[str, str]:
+    """TASK=module:function: a task's scripted expert other than its own (`--expert`)."""
+    name, sep, spec = text.partition("=")
+    if not sep or ":" not in spec:
+        raise argparse.ArgumentTypeError(f"{text!r}: give TASK=module:function")
+    return name.strip(), spec.strip()
+
+
 POSITIVE = number(0.0, exclusive_minimum=True)  # lengths, times, thresholds, learning rates
 COUNT = integer(minimum=1)          # episodes, steps, workers, batch size, ...
 NON_NEGATIVE = integer(minimum=0)   # seeds, frames, held-out episodes, ...

@@ -7,7 +7,7 @@ versions that made it). docs/DIAGNOSE.md says what each reads and how to read it
 import json
 import sys
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names, task_expert
 
 
 def _checkpoint_and_demos(p) -> None:
@@ -124,8 +124,8 @@ def _precision_budget(p):
     p.add_argument("--tasks", type=names, default=("insert_peg", "plug_charger"),
                    help="comma-separated (default insert_peg,plug_charger)")
     p.add_argument("--variants", type=names, default=("exact", "rot72", "rot360", "pos2"),
-                   help="comma-separated: exact, rotN (bins per axis), posM (mm), turnD (degrees), A+B (default "
-                        "exact,rot72,rot360,pos2)")
+                   help="comma-separated: exact, rotN (bins per axis), posM (mm), turnD (degrees), aheadM (mm towards "
+                        "the next keyframe), A+B (default exact,rot72,rot360,pos2)")
     p.add_argument("--seeds", type=COUNT, default=20, help="per task and variant (default 20)")
     p.add_argument("--first-seed", type=SEED, default=10_000, help="default 10000 (demos use 0 upwards)")
     p.add_argument("--workers", type=integer(1, 256), default=2, help="parallel simulator processes (default 2)")
@@ -133,6 +133,8 @@ def _precision_budget(p):
                    help="push insertions straight, without the executor's search for the hole")
     p.add_argument("--search-pitch", type=POSITIVE, metavar="MM", help="the insertion search's grid pitch (default: tasks/*.toml's)")
     p.add_argument("--search-retract", type=POSITIVE, metavar="MM", help="how far each probe backs off the face (default: tasks/*.toml's)")
+    p.add_argument("--expert", action="append", default=[], type=task_expert, metavar="TASK=MODULE:FUNCTION",
+                   help="degrade another scripted expert's keyframes than TASK's own (repeatable), as `rvt2 record --expert`")
 
     def build(args):
         from rvt2cli.diagnose import precision_budget
@@ -140,7 +142,7 @@ def _precision_budget(p):
         grid = {k: v for k, v in (("search_pitch_mm", args.search_pitch), ("search_retract_mm", args.search_retract))
                 if v is not None}
         return precision_budget, precision_budget.budget(args.tasks, args.variants, args.seeds, args.first_seed,
-                                                         args.workers, args.search, grid)
+                                                         args.workers, args.search, grid, dict(args.expert))
     return build
 
 

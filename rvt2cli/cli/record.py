@@ -1,9 +1,8 @@
 """`rvt2 record`: scripted-expert demonstrations in ManiSkill/SAPIEN -> MCAP episodes."""
 
-import argparse
 import time
 
-from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names
+from rvt2cli.cli.args import COUNT, NON_NEGATIVE, POSITIVE, SEED, integer, names, task_expert
 
 
 def register(subparsers) -> None:
@@ -38,13 +37,6 @@ def register(subparsers) -> None:
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--max-attempts", type=COUNT, help="give up after this many episodes (default 10 x --episodes + 10)")
     p.set_defaults(run=run)
-
-
-def task_expert(text: str) -> tuple[str, str]:
-    name, sep, spec = text.partition("=")
-    if not sep or ":" not in spec:
-        raise argparse.ArgumentTypeError(f"{text!r}: give TASK=module:function")
-    return name.strip(), spec.strip()
 
 
 def run(args) -> int:

@@ -200,13 +200,12 @@ class RecordSummary:
         return out
 
 
-def check_experts(experts, task_names) -> None:
-    """Each replacement expert names a task being recorded and a function that imports: one line otherwise,
+def check_experts(experts, task_names, doing: str = "being recorded") -> None:
+    """Each replacement expert names a task of `task_names` and a function that imports: one line otherwise,
     before any simulator starts."""
     for name, spec in experts:
         if name not in task_names:
-            raise UserError(f"--expert {name}={spec}: {name} is not among the tasks being recorded "
-                            f"({', '.join(task_names)})")
+            raise UserError(f"--expert {name}={spec}: {name} is not among the tasks {doing} ({', '.join(task_names)})")
         try:
             load_expert(spec)
         except (ImportError, AttributeError, ValueError):
