@@ -124,8 +124,8 @@ def _precision_budget(p):
     p.add_argument("--tasks", type=names, default=("insert_peg", "plug_charger"),
                    help="comma-separated (default insert_peg,plug_charger)")
     p.add_argument("--variants", type=names, default=("exact", "rot72", "rot360", "pos2"),
-                   help="comma-separated: exact, rotN (bins per axis), posM (mm), turnD (degrees), aheadM (mm towards "
-                        "the next keyframe), A+B (default exact,rot72,rot360,pos2)")
+                   help="comma-separated: exact, rotN (bins per axis), posM (mm), turnD (degrees), aheadM (a held tool's "
+                        "keyframes, mm towards where it goes next), A+B (default exact,rot72,rot360,pos2)")
     p.add_argument("--seeds", type=COUNT, default=20, help="per task and variant (default 20)")
     p.add_argument("--first-seed", type=SEED, default=10_000, help="default 10000 (demos use 0 upwards)")
     p.add_argument("--workers", type=integer(1, 256), default=2, help="parallel simulator processes (default 2)")
