@@ -147,8 +147,13 @@ def budget(tasks, variants, seeds: int = 20, first_seed: int = 10_000, workers: 
     for v in variants:
         Degradation.parse(v)
     jobs = [(v, t, first_seed + i, search, grid, experts) for t in tasks for v in variants for i in range(seeds)]
-    if workers == 1:   # here, in this process
-        episodes = list(map(_episode, jobs))
+    if workers == 1:   # here, in this process: its scenes are closed after, not kept as a worker's are
+        try:
+            episodes = list(map(_episode, jobs))
+        finally:
+            for env in _envs.values():
+                env.close()
+            _envs.clear()
     else:
         with ProcessPoolExecutor(workers) as pool:
             episodes = list(pool.map(_episode, jobs))
